@@ -1,0 +1,382 @@
+"""fetch5_env.py: the Fetch Manipulate scene, its action law, predicates and API (SPEC §3)."""
+
+import os
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import fetch5_env as fe
+import oracle_graph as og
+
+Z0 = fe.TABLE_Z + fe.BLOCK_HALF  # a block resting on the table
+FAR = [(1.10, 0.50), (1.10, 1.00), (1.50, 0.50), (1.50, 1.00), (1.30, 1.02)]  # far apart, away from the gripper
+
+
+def make(n=5, **kw):
+    env = fe.FetchManipulateEnv(n_blocks=n, **kw)
+    env.reset(seed=0)
+    return env
+
+
+def settle(env, steps):
+    for _ in range(steps):
+        obs, *_ = env.step(np.zeros(4))
+    return obs
+
+
+# ------------------------------------------------------------------------------------------------
+# Scripted controllers: the grip site is driven by a P-controller through the env's own action law.
+# ------------------------------------------------------------------------------------------------
+def move_to(env, target, finger, max_steps=60, tol=0.005):
+    obs = env._get_obs()
+    for _ in range(max_steps):
+        err = np.asarray(target) - obs["observation"][:3]
+        if np.linalg.norm(err) < tol:
+            break
+        obs, *_ = env.step(np.append(np.clip(err / fe.ACTION_SCALE, -1, 1), finger))
+    return obs
+
+
+def hold(env, finger, steps):
+    for _ in range(steps):
+        obs, *_ = env.step([0.0, 0.0, 0.0, finger])
+    return obs
+
+
+def pick_and_place(env, src, dst):
+    p = env.block_positions()
+    move_to(env, p[src] + (0, 0, 0.10), finger=1)  # above the block, fingers open
+    move_to(env, p[src], finger=1)  # grip site at the block centre
+    hold(env, -1, 8)  # close
+    move_to(env, np.r_[p[src][:2], p[dst][2] + 0.12], finger=-1)  # lift
+    move_to(env, p[dst] + (0, 0, 0.12), finger=-1)  # carry
+    move_to(env, p[dst] + (0, 0, 0.055), finger=-1)  # lower onto the target block
+    hold(env, 1, 5)  # release
+    move_to(env, p[dst] + (0, 0, 0.15), finger=1)  # retreat
+    return hold(env, 0, 10)
+
+
+def push_together(env, i, j, stop=0.075):
+    p = env.block_positions()
+    u = p[j] - p[i]
+    u[2] = 0.0
+    u /= np.linalg.norm(u)
+    move_to(env, p[i] - 0.06 * u + (0, 0, 0.08), finger=-1)
+    move_to(env, p[i] - 0.06 * u, finger=-1)  # fingers behind block i, at its height
+    for _ in range(80):
+        p = env.block_positions()
+        if np.linalg.norm(p[i] - p[j]) < stop:
+            break
+        env.step(np.append(0.3 * u[:2], [0.0, -1.0]))
+    move_to(env, env._get_obs()["observation"][:3] + (0, 0, 0.1), finger=-1)
+    return hold(env, 0, 10)
+
+
+def first_all_apart_seed(n=5):
+    for seed in range(100):
+        env = fe.FetchManipulateEnv(n_blocks=n)
+        obs, _ = env.reset(seed=seed)
+        if (obs["achieved_goal"] == -1).all():
+            return env
+    raise AssertionError("no reset with all blocks apart in 100 seeds")
+
+
+# ------------------------------------------------------------------------------------------------
+# 1-2. Gymnasium API and shapes
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n", [5, 3])
+def test_registered_env_passes_gymnasium_check_env(n):
+    env = gym.make(f"FetchManipulate{n}-v0")
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.parametrize("n, obs_dim, goal_dim", [(5, 85, 30), (3, 55, 9), (2, 40, 3), (4, 70, 18)])
+def test_observation_and_goal_sizes_follow_10_plus_15n_and_layout(n, obs_dim, goal_dim):
+    env = gym.make(f"FetchManipulate{n}-v0")
+    obs, _ = env.reset(seed=1)
+    assert obs["observation"].shape == (obs_dim,) and obs["observation"].dtype == np.float32
+    for key in ("achieved_goal", "desired_goal"):
+        assert obs[key].shape == (goal_dim,) and obs[key].dtype == np.float32
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert obs["observation"].dtype == np.float32 and isinstance(reward, float)
+    assert terminated is False and truncated is False
+    assert env.spec.max_episode_steps == 40
+
+
+def test_observation_slices_hold_grip_fingers_and_block_features():
+    env = make(5)
+    p = np.array([[x, y, Z0] for x, y in FAR])
+    obs = env.place_blocks(p)["observation"]
+    grip = obs[0:3]
+    np.testing.assert_allclose(grip, fe.INITIAL_GRIP_POS, atol=1e-6)
+    np.testing.assert_allclose(obs[3:5], 0.0, atol=1e-9)
+    for i in range(5):
+        b = obs[10 + 15 * i : 25 + 15 * i]
+        np.testing.assert_allclose(b[0:3], p[i], atol=1e-6)  # position
+        np.testing.assert_allclose(b[3:6], 0.0, atol=1e-6)  # upright: zero Euler angles
+        np.testing.assert_allclose(b[12:15], p[i] - grip, atol=1e-6)  # relative position
+
+
+def test_block_velocities_are_scaled_by_dt_and_relative_to_the_gripper():
+    env = make(3)
+    obs = settle(env, 1)
+    for _ in range(3):
+        obs, *_ = env.step([1.0, 0.0, 0.0, 0.0])  # the gripper moves, the blocks rest
+    o = obs["observation"]
+    grip_vel = o[5:8]
+    assert grip_vel[0] > 0.01  # a few cm per 0.04 s step
+    for i in range(3):
+        np.testing.assert_allclose(o[10 + 15 * i + 9 : 10 + 15 * i + 12], -grip_vel, atol=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Predicates on constructed scenes; stacks are stable
+# ------------------------------------------------------------------------------------------------
+def scene(*blocks):
+    """Blocks given as (x, y, level); the rest go far away."""
+    p = [(x, y, Z0 + 2 * fe.BLOCK_HALF * level) for x, y, level in blocks]
+    return np.array(p + [(x, y, Z0) for x, y in FAR[len(p) :]])
+
+
+X, Y = 1.22, 0.62  # build site, away from the gripper
+SCENES = {
+    "all apart": (scene(), og.make_config(5)),
+    "one close pair": (scene((X, Y, 0), (X + 0.07, Y, 0)), og.make_config(5, close=[(0, 1)])),
+    "2-stack": (scene((X, Y, 0), (X, Y, 1)), og.make_config(5, close=[(0, 1)], above=[(1, 0)])),
+    "3-stack": (
+        scene((X, Y, 0), (X, Y, 1), (X, Y, 2)),
+        og.make_config(5, close=[(0, 1), (1, 2)], above=[(1, 0), (2, 1)]),
+    ),
+    "two 2-stacks": (
+        scene((X, Y, 0), (X, Y, 1), (X + 0.2, Y + 0.3, 0), (X + 0.2, Y + 0.3, 1)),
+        og.make_config(5, close=[(0, 1), (2, 3)], above=[(1, 0), (3, 2)]),
+    ),
+    "pyramid": (
+        scene((X, Y, 0), (X + 0.052, Y, 0), (X + 0.026, Y, 1)),
+        og.make_config(5, close=[(0, 1), (0, 2), (1, 2)], above=[(2, 0), (2, 1)]),
+    ),
+    "5-stack": (
+        scene(*[(X, Y, k) for k in range(5)]),
+        og.make_config(5, close=[(k, k + 1) for k in range(4)], above=[(k + 1, k) for k in range(4)]),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_constructed_scene_has_exact_predicates_and_stays_put(name):
+    positions, expected = SCENES[name]
+    env = make(5)
+    env.place_blocks(positions)
+    obs = settle(env, 5)
+    np.testing.assert_array_equal(obs["achieved_goal"], expected)
+    before = env.block_positions()
+    obs = settle(env, 100)
+    moved = np.linalg.norm(env.block_positions() - before, axis=1)
+    assert moved.max() < 0.005, f"{name}: a block moved {moved.max() * 1e3:.1f} mm"
+    np.testing.assert_array_equal(obs["achieved_goal"], expected)
+
+
+def test_semantic_config_thresholds_match_spec():
+    def cfg(p):
+        return fe.semantic_config(np.array(p))
+
+    assert cfg([[0, 0, 0], [0.089, 0, 0]])[0] == 1 and cfg([[0, 0, 0], [0.091, 0, 0]])[0] == -1
+    # above(1 on 0) is index 1 + 1 for 2 blocks: [close{0,1}, above(0,1), above(1,0)]
+    assert cfg([[0, 0, 0], [0.049, 0, 0.05]]).tolist() == [1, -1, 1]
+    assert cfg([[0, 0, 0], [0.051, 0, 0.05]]).tolist() == [1, -1, -1]  # too far sideways
+    assert cfg([[0, 0, 0], [0, 0, 0.029]]).tolist() == [1, -1, -1]  # too low
+    assert cfg([[0, 0, 0], [0, 0, 0.061]]).tolist() == [1, -1, -1]  # too high: floating
+    batch = fe.semantic_config(np.zeros((4, 7, 3, 3)))  # any leading batch axes
+    assert batch.shape == (4, 7, 9)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. Grasping and pushing with scripted controllers
+# ------------------------------------------------------------------------------------------------
+def test_scripted_pick_and_place_builds_block0_on_block1_and_nothing_else():
+    env = first_all_apart_seed()
+    obs = pick_and_place(env, 0, 1)
+    np.testing.assert_array_equal(obs["achieved_goal"], og.make_config(5, close=[(0, 1)], above=[(0, 1)]))
+
+
+def test_scripted_push_brings_the_closest_pair_together_into_c1():
+    env = first_all_apart_seed()
+    p = env.block_positions()
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1) + 9 * np.eye(5)
+    i, j = np.unravel_index(d.argmin(), d.shape)
+    obs = push_together(env, i, j)
+    np.testing.assert_array_equal(obs["achieved_goal"], og.make_config(5, close=[(i, j)]))
+    assert env.block_positions()[:, 2].max() < Z0 + 0.005  # pushed, not lifted
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Action law and initial state
+# ------------------------------------------------------------------------------------------------
+def test_initial_grip_site_is_at_the_fetch_start_pose_with_fingers_closed():
+    for seed in range(3):
+        env = fe.FetchManipulateEnv(5)
+        obs, _ = env.reset(seed=seed)
+        assert np.abs(obs["observation"][:3] - fe.INITIAL_GRIP_POS).max() < 1e-3
+        assert np.abs(obs["observation"][3:5]).max() < 1e-6
+
+
+def test_ten_full_x_actions_move_the_grip_site_20_to_35_cm():
+    env = make(5)
+    start = env._get_obs()["observation"][:3].copy()
+    for _ in range(10):
+        obs, *_ = env.step([1.0, 0.0, 0.0, 0.0])
+    dx, dy, dz = obs["observation"][:3] - start
+    assert 0.20 <= dx <= 0.35 and abs(dy) < 0.005 and abs(dz) < 0.005
+
+
+def test_finger_action_opens_to_about_5cm_and_closes_again():
+    env = make(5)
+    obs = hold(env, 1.0, 10)
+    np.testing.assert_allclose(obs["observation"][3:5], 0.05, atol=0.002)
+    obs = hold(env, -1.0, 10)
+    np.testing.assert_allclose(obs["observation"][3:5], 0.0, atol=0.002)
+
+
+def test_actions_are_clipped_to_the_unit_box():
+    a, b = make(5), make(5)
+    for _ in range(5):
+        oa, *_ = a.step([5.0, -7.0, 3.0, 9.0])
+        ob, *_ = b.step([1.0, -1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(oa["observation"], ob["observation"])
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. Seeding and reset distribution
+# ------------------------------------------------------------------------------------------------
+def rollout(seed, actions):
+    env = fe.FetchManipulateEnv(5)
+    obs, _ = env.reset(seed=seed)
+    out = [obs["observation"]]
+    for a in actions:
+        out.append(env.step(a)[0]["observation"])
+    return np.array(out)
+
+
+def test_same_seed_and_actions_reproduce_observations_exactly():
+    actions = np.random.default_rng(0).uniform(-1, 1, (40, 4))
+    np.testing.assert_array_equal(rollout(7, actions), rollout(7, actions))
+    assert not np.array_equal(rollout(7, actions)[0], rollout(8, actions)[0])
+
+
+def test_resets_rest_blocks_on_the_table_apart_and_never_stacked():
+    env = fe.FetchManipulateEnv(5)
+    env.reset(seed=123)
+    nc = 10
+    close_seen = False
+    for _ in range(300):
+        obs, _ = env.reset()
+        p = env.block_positions()
+        d = np.linalg.norm(p[:, None, :2] - p[None, :, :2], axis=-1) + np.eye(5)
+        assert d.min() >= fe.MIN_SPAWN_DIST - 1e-12
+        np.testing.assert_allclose(p[:, 2], Z0)
+        assert np.all(np.abs(p[:, :2] - fe.INITIAL_GRIP_POS[:2]) <= fe.SPAWN_RANGE)
+        assert (obs["achieved_goal"][nc:] == -1).all()
+        close_seen |= bool((obs["achieved_goal"][:nc] == 1).any())
+    assert close_seen  # close pairs may be true at reset (SPEC §3)
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. Rewards
+# ------------------------------------------------------------------------------------------------
+def test_compute_reward_is_vectorised_and_matches_is_success():
+    env = make(3)
+    goal = og.make_config(3, close=[(0, 1)], above=[(0, 1)])
+    obs, _ = env.reset(seed=0, options={"goal": goal})
+    np.testing.assert_array_equal(obs["desired_goal"], goal)
+    obs, reward, _, _, info = env.step(np.zeros(4))
+    assert reward == 0.0 and info["is_success"] == reward
+    ach = np.stack([goal, -goal, goal])
+    des = np.stack([goal, goal, -np.ones(9, dtype=np.float32)])
+    np.testing.assert_array_equal(env.compute_reward(ach, des, {}), [1.0, 0.0, 0.0])
+    assert env.compute_reward(np.zeros((2, 5, 9)), np.zeros((2, 5, 9)), {}).shape == (2, 5)
+    # The reward of a step is the reward of its achieved goal.
+    env.set_goal(obs["achieved_goal"])
+    obs, reward, _, _, info = env.step(np.zeros(4))
+    assert reward == 1.0 and info["is_success"] == 1.0
+
+
+def test_set_goal_changes_the_goal_but_not_the_physics():
+    env = make(3)
+    settle(env, 3)
+    before = env.data.qpos.copy(), env.data.qvel.copy()
+    goal = og.make_config(3, close=[(1, 2)])
+    obs = env.set_goal(goal)
+    np.testing.assert_array_equal(obs["desired_goal"], goal)
+    np.testing.assert_array_equal(env.data.qpos, before[0])
+    np.testing.assert_array_equal(env.data.qvel, before[1])
+
+
+# ------------------------------------------------------------------------------------------------
+# 8. Bad input
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "goal, message",
+    [(np.ones(29), r"shape \(30,\).*\(29,\)"), (np.r_[np.ones(29), 0.5], r"-1 or \+1.*0\.5"), ([np.nan] * 30, "nan")],
+)
+def test_bad_goals_raise_a_value_error_naming_the_value(goal, message):
+    env = make(5)
+    with pytest.raises(ValueError, match=message):
+        env.reset(options={"goal": goal})
+    with pytest.raises(ValueError, match=message):
+        env.set_goal(goal)
+
+
+def test_nan_or_misshaped_actions_raise_a_value_error_naming_the_value():
+    env = make(5)
+    with pytest.raises(ValueError, match="nan"):
+        env.step([0.0, np.nan, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"\(3,\)"):
+        env.step([0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("n", [1, 6, 0, 2.5, "3", True])
+def test_n_blocks_outside_2_to_5_is_rejected_naming_the_value(n):
+    with pytest.raises(ValueError, match=repr(n) if isinstance(n, str | float | bool) else str(n)):
+        fe.FetchManipulateEnv(n_blocks=n)
+
+
+def test_unknown_render_mode_is_rejected():
+    with pytest.raises(ValueError, match="'depth'"):
+        fe.FetchManipulateEnv(3, render_mode="depth")
+
+
+# ------------------------------------------------------------------------------------------------
+# 9. Rendering (headless in CI through OSMesa)
+# ------------------------------------------------------------------------------------------------
+def _gl_or_skip():
+    """Rendering must work in CI; elsewhere a machine without a GL backend skips with a reason."""
+    mujoco = pytest.importorskip("mujoco")
+    try:
+        mujoco.Renderer(fe.build_model(2), 8, 8).close()
+    except Exception as e:  # noqa: BLE001 (any GL failure means: no backend here)
+        if os.environ.get("CI"):
+            raise
+        pytest.skip(f"no OpenGL backend (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {e}")
+    return mujoco
+
+
+def test_rgb_array_render_shows_the_table_and_every_block():
+    mujoco = _gl_or_skip()
+    env = fe.FetchManipulateEnv(5, render_mode="rgb_array", width=320, height=240)
+    env.reset(seed=0)
+    img = env.render()
+    assert img.shape == (240, 320, 3) and img.dtype == np.uint8 and img.std() > 10
+    # Which geoms are visible: segmentation rendering from the same camera.
+    seg = mujoco.Renderer(env.model, 240, 320)
+    seg.enable_segmentation_rendering()
+    seg.update_scene(env.data, camera="external")
+    ids = seg.render()[..., 0]
+    visible = {env.model.geom(int(g)).name for g in np.unique(ids) if g >= 0}
+    assert "table" in visible
+    bodies = {env.model.body(int(env.model.geom_bodyid[g])).name for g in np.unique(ids) if g >= 0}
+    assert {f"object{i}" for i in range(5)} <= bodies, f"visible bodies: {bodies}"
+    seg.close()
+    env.close()
