@@ -366,6 +366,21 @@ def _search_classes(n_blocks: int):
     return root, np.array(parents, dtype=np.int64), np.array(children, dtype=np.int64)
 
 
+def bfs_hops(indptr: np.ndarray, indices: np.ndarray, start: int) -> np.ndarray:
+    """Edge count from `start` to every node of a CSR graph (-1: unreachable), one numpy pass per level."""
+    hops = np.full(len(indptr) - 1, -1, dtype=np.int64)
+    hops[start], frontier, d = 0, np.array([start]), 0
+    while len(frontier):
+        d += 1
+        starts, counts = indptr[frontier], indptr[frontier + 1] - indptr[frontier]
+        # all CSR rows of the frontier at once: start of each row + offset within it
+        offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        nxt = np.unique(indices[np.repeat(starts, counts) + offsets])
+        frontier = nxt[hops[nxt] < 0]
+        hops[frontier] = d
+    return hops
+
+
 class OracleGraph:
     """The social partner's knowledge (SPEC §4): every permutation of every class the grid search found,
     linked by every permutation of the spanning tree's edges, in both directions.
@@ -434,17 +449,7 @@ class OracleGraph:
     def depths(self, start=None) -> np.ndarray:
         """Edge distance of every node from `start` (default: all apart) by breadth-first search; -1 if unreachable."""
         s = int(self.index(make_config(self.n_blocks) if start is None else start))
-        depth = np.full(self.n_nodes, -1)
-        depth[s], frontier, d = 0, np.array([s]), 0
-        while len(frontier):
-            d += 1
-            starts, counts = self.indptr[frontier], np.diff(self.indptr)[frontier]
-            # all CSR rows of the frontier at once: start of each row + offset within it
-            offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-            nxt = np.unique(self.indices[np.repeat(starts, counts) + offsets])
-            frontier = nxt[depth[nxt] < 0]
-            depth[frontier] = d
-        return depth
+        return bfs_hops(self.indptr, self.indices, s)
 
     # --- evaluation classes -------------------------------------------------------------------
     @property

@@ -1,0 +1,426 @@
+"""gangstr_hme.py, the learner: GNN actor-critic, SAC, HER, normalizer, semantic graph and planners,
+the training loop, its outputs, resume and command line (SPEC §5, §6, §9, §10)."""
+
+import csv
+import itertools
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import gangstr_hme as gh
+import oracle_graph as og
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16",
+        "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
+
+
+def run_script(*args, runs_dir, timeout=120):
+    cmd = [sys.executable, "gangstr_hme.py", *args, "--runs-dir", str(runs_dir)]
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+def read_rows(run_dir: Path):
+    with (run_dir / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Smoke: the whole loop writes a run folder
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n_blocks", [3, 5])
+def test_tiny_run_collects_updates_evaluates_logs_and_checkpoints(tmp_path, n_blocks):
+    out = run_script("--sp-ratio", "0", "--n-blocks", str(n_blocks), *TINY, runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = tmp_path.iterdir()
+    assert run_dir.name.startswith("gangstr_hme__0__")
+    assert {"config.json", "progress.csv", "checkpoint.pt"} <= {p.name for p in run_dir.iterdir()}
+    assert any(p.name.startswith("events.out.tfevents") for p in run_dir.iterdir())
+    (row,) = read_rows(run_dir)
+    assert int(row["env_steps"]) == 2 * 3 * 10
+    assert 0.0 <= float(row["global_sr"]) <= 1.0 and f"sr_{list(og.evaluation_classes(n_blocks))[-1]}" in row
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert state["counters"]["epoch"] == 1 and state["args"]["n_blocks"] == n_blocks
+    assert "SR" in out.stdout and "epoch   0" in out.stdout
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. The GNN
+# ------------------------------------------------------------------------------------------------
+def random_inputs(n, batch=6, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(batch, 10 + 15 * n, generator=g)
+    ag = torch.where(torch.rand(batch, og.config_dim(n), generator=g) < 0.3, 1.0, -1.0)
+    goal = torch.where(torch.rand(batch, og.config_dim(n), generator=g) < 0.3, 1.0, -1.0)
+    act = torch.rand(batch, 4, generator=g) * 2 - 1
+    return obs, ag, goal, act
+
+
+def forward(agent, obs, ag, goal, act):
+    body, blocks = gh.split_obs(obs, agent.gi.n)
+    msg = agent.critic.messages(agent.gi, blocks, ag, goal)
+    mean, log_std = agent.actor(body, blocks, msg)
+    return torch.cat([mean, log_std, *[q[:, None] for q in agent.critic.q(body, blocks, act, msg)]], dim=1)
+
+
+@pytest.mark.parametrize("n", [3, 5])
+def test_gnn_outputs_are_invariant_to_a_consistent_permutation_of_the_blocks(n):
+    agent = gh.SAC(gh.Args(n_blocks=n), 10 + 15 * n, torch.device("cpu"))
+    obs, ag, goal, act = random_inputs(n)
+    ref = forward(agent, obs, ag, goal, act)
+    perms = og.permutations(n)
+    for k in [1, len(perms) // 2, len(perms) - 1]:
+        p = torch.tensor(perms[k])
+        blocks = obs[:, 10:].reshape(len(obs), n, 15)
+        moved = torch.empty_like(blocks)
+        moved[:, p] = blocks  # block p(a) takes block a's place
+        obs_p = torch.cat([obs[:, :10], moved.reshape(len(obs), -1)], dim=1)
+        src = torch.tensor(og.permutation_sources(n)[k])
+        out = forward(agent, obs_p, ag[:, src], goal[:, src], act)
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(forward(agent, obs, ag, -goal, act), ref)  # the goal matters
+
+
+def test_parameter_count_matches_the_layer_sizes_of_the_spec():
+    def linear(i, o):
+        return i * o + o
+
+    message = linear(8, 256) + linear(256, 24)
+    actor = linear(49, 256) + linear(256, 147) + linear(147, 256) + 2 * linear(256, 4)
+    critic = message + 2 * (linear(53, 256) + linear(256, 159) + linear(159, 256) + linear(256, 1))
+    agent = gh.SAC(gh.Args(n_blocks=5), 85, torch.device("cpu"))
+    assert sum(p.numel() for p in agent.actor.parameters()) == actor
+    assert sum(p.numel() for p in agent.critic.parameters()) == critic
+    assert all(b.abs().sum() == 0 for name, b in agent.critic.named_parameters() if name.endswith("bias"))
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. HER, SAC, target updates, normalizer
+# ------------------------------------------------------------------------------------------------
+def filled_buffer(n_seg=50, T=10, dim=9, seed=0):
+    rng = np.random.default_rng(seed)
+    buf = gh.ReplayBuffer(n_seg, T, 55, dim)
+    ag = np.where(rng.random((n_seg, T + 1, dim)) < 0.5, 1, -1).astype(np.float32)
+    g = np.ones((n_seg, dim), np.float32)  # never achieved: any match with an achieved config is a relabel
+    buf.store(rng.normal(size=(n_seg, T + 1, 55)).astype(np.float32), ag, g, rng.normal(size=(n_seg, T, 4)))
+    return buf
+
+
+def test_her_final_relabels_about_80_percent_with_the_last_achieved_config_and_recomputes_rewards():
+    buf = filled_buffer()
+    rng = np.random.default_rng(1)
+    b = buf.sample(20000, rng, her_prob=1 - 1 / (1 + 4), strategy="final")
+    finals = buf.ag[:, -1].astype(np.float32)
+    relabelled = (b["g"][:, None, :] == finals[None]).all(-1).any(-1)
+    assert abs(relabelled.mean() - 0.8) < 0.015
+    assert ((b["g"] == 1).all(1) | relabelled).all()  # every goal is the original or a final config
+    np.testing.assert_array_equal(b["reward"], (b["ag_next"] == b["g"]).all(1).astype(np.float32))
+    assert 0 < b["reward"].mean() < 1
+
+
+def test_her_future_relabels_with_a_later_achieved_config_of_the_same_segment():
+    buf = filled_buffer(n_seg=1, T=10)
+    b = buf.sample(4000, np.random.default_rng(2), her_prob=1.0, strategy="future")
+    later = np.array([[(buf.ag[0, u] == g).all() for u in range(11)] for g in b["g"][:200]])
+    t = np.array([np.flatnonzero((buf.obs[0] == o).all(1))[0] for o in b["obs"][:200]])
+    assert all(later[i, t[i] + 1 :].any() for i in range(200))
+
+
+def test_sac_losses_follow_the_spec_on_a_tiny_batch():
+    args = gh.Args(n_blocks=3)
+    agent = gh.SAC(args, 55, torch.device("cpu"))
+    agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)  # mean 0, std 1: normalizing is clipping
+    obs, ag, goal, act = random_inputs(3, batch=3)
+    obs2, ag2, _, _ = random_inputs(3, batch=3, seed=1)
+    batch = dict(obs=obs.numpy(), obs_next=obs2.numpy(), ag=ag.numpy(), ag_next=ag2.numpy(), g=goal.numpy(),
+                 action=act.numpy(), reward=np.array([1.0, 0.0, 1.0], np.float32))  # fmt: skip
+    t = agent.to_tensors(batch)
+    torch.manual_seed(5)
+    critic_loss, actor_loss, _ = agent.losses(t)
+    # By hand, with the same random draws.
+    torch.manual_seed(5)
+    b1, k1 = gh.split_obs(t["obs"], 3)
+    b2, k2 = gh.split_obs(t["obs_next"], 3)
+    with torch.no_grad():
+        a2, logp2 = agent.actor.sample(b2, k2, agent.critic.messages(agent.gi, k2, t["ag_next"], t["g"]))
+        tq = agent.critic_target.q(b2, k2, a2, agent.critic_target.messages(agent.gi, k2, t["ag_next"], t["g"]))
+        y = t["reward"] + 0.99 * (torch.min(tq[0], tq[1]) - 0.2 * logp2)
+        msg = agent.critic.messages(agent.gi, k1, t["ag"], t["g"])
+        q1, q2 = agent.critic.q(b1, k1, t["action"], msg)
+        expected_critic = ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()
+        pi, logp = agent.actor.sample(b1, k1, msg)
+        qp = agent.critic.q(b1, k1, pi, msg)
+        expected_actor = (0.2 * logp - torch.min(qp[0], qp[1])).mean()
+    torch.testing.assert_close(critic_loss, expected_critic)
+    torch.testing.assert_close(actor_loss, expected_actor)
+
+
+def test_actor_loss_moves_the_actor_only_and_the_message_net_learns_from_the_critic_loss():
+    agent = gh.SAC(gh.Args(n_blocks=3, lr_critic=0.0), 55, torch.device("cpu"))
+    agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    buf = filled_buffer()
+    before = {k: v.clone() for k, v in agent.critic.state_dict().items()}
+    actor_before = [p.clone() for p in agent.actor.parameters()]
+    agent.update(buf.sample(32, np.random.default_rng(0), 0.8, "final"))
+    # lr_critic = 0: had the actor loss leaked into the critic, Adam would still not move it; check grads
+    msg_grads = [p.grad for p in agent.critic.message.parameters()]
+    assert all(g is not None and g.abs().sum() > 0 for g in msg_grads)
+    assert all(torch.equal(v, agent.critic.state_dict()[k]) for k, v in before.items())
+    assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters(), strict=True))
+
+
+def test_target_critic_is_polyak_averaged_with_0_95_every_second_update():
+    agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
+    agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    buf = filled_buffer()
+    rng = np.random.default_rng(0)
+    target0 = [p.clone() for p in agent.critic_target.parameters()]
+    agent.update(buf.sample(32, rng, 0.8, "final"))
+    assert all(torch.equal(a, b) for a, b in zip(target0, agent.critic_target.parameters(), strict=True))
+    agent.update(buf.sample(32, rng, 0.8, "final"))
+    for t0, t1, p in zip(target0, agent.critic_target.parameters(), agent.critic.parameters(), strict=True):
+        torch.testing.assert_close(t1, 0.95 * t0 + 0.05 * p)
+
+
+def test_normalizer_clips_raw_values_floors_the_std_and_clips_its_output():
+    norm = gh.Normalizer(3)
+    norm.update(np.array([[100.0, 1.0, 0.0]] * 10))  # 100 counts as 5; constant columns
+    np.testing.assert_allclose(norm.mean, [5.0, 1.0, 0.0])
+    np.testing.assert_allclose(norm.std, [0.01, 0.01, 0.01])
+    np.testing.assert_allclose(norm(np.array([5.0, 1.005, -3.0])), [0.0, 0.5, -5.0], atol=1e-5)
+    norm.update(np.array([[0.0, 3.0, 0.0]] * 10))
+    np.testing.assert_allclose(norm.mean, [2.5, 2.0, 0.0])
+    np.testing.assert_allclose(norm.std, [2.5, 1.0, 0.01])
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. The semantic graph and its planners
+# ------------------------------------------------------------------------------------------------
+def M(n, close=(), above=()):
+    return int(og.to_mask(og.make_config(n, close=close, above=above)))
+
+
+def test_a_new_config_brings_all_its_permutations_as_nodes():
+    g = gh.SemanticGraph(3, gh.Args(n_blocks=3))
+    g.add_config(M(3, close=[(0, 1)], above=[(0, 1)]))
+    assert g.n_nodes == 6  # "a on b" for the 6 ordered pairs
+    g.add_config(M(3))
+    assert g.n_nodes == 7
+
+
+def test_edges_are_created_for_small_steps_only_with_all_joint_permutations_sharing_one_sr():
+    args = gh.Args(n_blocks=3)
+    g = gh.SemanticGraph(3, args)
+    apart, c01 = M(3), M(3, close=[(0, 1)])
+    g.update(apart, c01, target=c01, success=True)  # target unknown before: no SR update... then known
+    assert g.n_edges == 3 and len(g.sr) == 1  # apart -> close{a,b} for the 3 pairs
+    assert g.sr[0] == pytest.approx(0.5 + 0.01 * (1 - 0.5))  # the target became a node: EMA step
+    two_moved = M(3, close=[(0, 1), (1, 2), (0, 2)], above=[(0, 1)])
+    unknown = M(3, close=[(0, 1)], above=[(1, 0)])
+    g.update(c01, M(3, close=[(0, 2), (1, 2)]), target=unknown, success=False)  # not small: no new edge
+    assert g.n_edges == 3
+    g.update(apart, two_moved, target=two_moved, success=False)  # block 0 alone? no: 0,1,2 all change
+    assert g.n_edges == 3
+    # An outcome on one edge moves the shared estimate of every equivalent edge.
+    g.update(apart, M(3, close=[(1, 2)]), target=M(3, close=[(0, 2)]), success=False)
+    assert len(g.sr) == 1 and g.sr[0] == pytest.approx(0.505 + 0.01 * (0 - 0.505))
+
+
+def test_sr_ema_converges_to_the_success_frequency():
+    g = gh.SemanticGraph(3, gh.Args(n_blocks=3))
+    apart, c01 = M(3), M(3, close=[(0, 1)])
+    g.add_config(c01)
+    for i in range(2000):
+        g.update(apart, apart, target=c01, success=i % 4 == 0)
+    assert g.sr[0] == pytest.approx(0.25, abs=0.03)
+
+
+def test_unstable_segments_leave_the_graph_unchanged():
+    args = gh.Args(n_blocks=3, segment_len=10, stable_steps=3)
+    learner = gh.Learner(args, torch.device("cpu"))
+    ag = np.tile(og.make_config(3), (11, 1))
+    ag[-2] = og.make_config(3, close=[(0, 1)])  # the final config changed within the last 3 steps
+    seg = gh.Segment(np.zeros((11, 55), np.float32), ag, og.make_config(3), np.zeros((10, 4)), True, stable=False)
+    learner.learn_from([seg])
+    assert learner.graph.n_nodes == 0 and learner.buffer.size == 1
+    stable = gh.Segment(seg.obs, np.tile(og.make_config(3, close=[(0, 1)]), (11, 1)), seg.g, seg.actions, False, True)
+    learner.learn_from([stable])
+    assert learner.graph.n_nodes == 3
+
+
+def test_segments_report_stability_over_the_last_steps():
+    args = gh.Args(n_blocks=3, segment_len=6, stable_steps=3)
+    learner = gh.Learner(args, torch.device("cpu"))
+    seg = gh.run_segment(learner.env, learner.agent, og.make_config(3), args, deterministic=True)
+    assert seg.obs.shape == (7, 55) and seg.ag.shape == (7, 9) and seg.actions.shape == (6, 4)
+    assert seg.stable == bool((seg.ag[3:] == seg.ag[-1]).all())
+    assert seg.success == bool((seg.ag[-1] == og.make_config(3)).all())
+
+
+def random_graph(n_nodes, p, seed):
+    """A SemanticGraph whose nodes are plain ids and whose every edge has its own random SR."""
+    rng = np.random.default_rng(seed)
+    g = gh.SemanticGraph(3, gh.Args(n_blocks=3))
+    for i in range(n_nodes):
+        g.node_of[i] = i
+        g.masks.append(i)
+        g.succ.append([])
+        g.succ_class.append([])
+    for u, v in itertools.permutations(range(n_nodes), 2):
+        if rng.random() < p:
+            g._add_edge(u, v, len(g.sr))
+            g.sr.append(float(rng.uniform(0.05, 1.0)))
+    return g
+
+
+def all_simple_paths(g, s, t):
+    paths, stack = [], [[s]]
+    while stack:
+        path = stack.pop()
+        if path[-1] == t:
+            paths.append(path)
+            continue
+        stack += [path + [v] for v in g.succ[path[-1]] if v not in path]
+    return paths
+
+
+def path_sr(g, path):
+    cls = {(u, v): c for u, v, c in g.edge_log}
+    return math.prod(g.sr[cls[u, v]] for u, v in zip(path, path[1:], strict=False))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_safest_path_is_the_most_reliable_path_of_a_brute_force_enumeration(seed):
+    g = random_graph(7, 0.35, seed)
+    for s, t in itertools.permutations(range(7), 2):
+        paths = all_simple_paths(g, s, t)
+        found = g.safest_path(s, t)
+        if not paths:
+            assert found is None
+            continue
+        assert found in paths
+        assert path_sr(g, found) == pytest.approx(max(path_sr(g, p) for p in paths))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_yen_k_shortest_paths_match_a_brute_force_enumeration(seed):
+    g = random_graph(7, 0.35, seed)
+    for s, t in itertools.permutations(range(7), 2):
+        paths = all_simple_paths(g, s, t)
+        found = g.k_shortest_paths(s, t, 5)
+        assert len(found) == min(5, len(paths))
+        assert all(p in paths for p in found) and len({tuple(p) for p in found}) == len(found)
+        assert sorted(len(p) for p in found) == sorted(len(p) for p in paths)[: len(found)]
+        assert [len(p) for p in found] == sorted(len(p) for p in found)
+
+
+def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_configs():
+    args = gh.Args(n_blocks=3, max_path_len=4, shortest_ratio=0.0)
+    g = random_graph(12, 0.0, 0)
+    g.args = args
+    for u in range(11):  # a chain 0 -> 1 -> ... -> 11
+        g._add_edge(u, u + 1, len(g.sr))
+        g.sr.append(0.9)
+    rng = np.random.default_rng(0)
+    assert g.plan(0, 11, rng, explore=False) == [0, 9, 10, 11]
+    assert g.plan(0, 2, rng, explore=False) == [0, 1, 2]
+    assert g.plan(5, 0, rng, explore=False) == [5, 0]  # unreachable
+    assert g.plan(3, 3, rng, explore=False) == [3, 3]  # start == goal
+    assert g.plan(0, 99, rng, explore=False) == [0, 99]  # unknown goal
+
+
+def test_graph_state_round_trips_through_a_checkpoint(tmp_path):
+    g = random_graph(9, 0.4, 3)
+    torch.save(g.state_dict(), tmp_path / "g.pt")
+    h = gh.SemanticGraph(3, g.args)
+    h.load_state_dict(torch.load(tmp_path / "g.pt", weights_only=True))
+    assert (h.masks, h.succ, h.succ_class, h.sr, h.edge_log) == (g.masks, g.succ, g.succ_class, g.sr, g.edge_log)
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Resume and Ctrl-C
+# ------------------------------------------------------------------------------------------------
+RESUME = ["--sp-ratio", "0", "--n-blocks", "3", "--n-cycles", "2", "--n-segments", "4", "--n-updates", "3",
+          "--batch-size", "16", "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "2",
+          "--threads", "1", "--seed", "3"]  # fmt: skip
+TIMING = ("time_", "steps_per_second")
+
+
+def test_resuming_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
+    assert run_script(*RESUME, "--n-epochs", "3", runs_dir=tmp_path / "a").returncode == 0
+    out = run_script(*RESUME, "--n-epochs", "1", runs_dir=tmp_path / "b")
+    assert out.returncode == 0
+    (run_b,) = (tmp_path / "b").iterdir()
+    out = run_script("--resume", str(run_b / "checkpoint.pt"), "--n-epochs", "3", runs_dir=tmp_path / "b")
+    assert out.returncode == 0, out.stderr
+    (run_a,) = (tmp_path / "a").iterdir()
+    rows_a, rows_b = read_rows(run_a), read_rows(run_b)
+    assert len(rows_a) == len(rows_b) == 3
+    for ra, rb in zip(rows_a, rows_b, strict=True):
+        assert {k: v for k, v in ra.items() if not k.startswith(TIMING)} == {
+            k: v for k, v in rb.items() if not k.startswith(TIMING)
+        }
+
+
+def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path):
+    cmd = [sys.executable, "-u", "gangstr_hme.py", *RESUME, "--n-epochs", "100", "--runs-dir", str(tmp_path)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for line in proc.stdout:
+        if "epoch   1" in line:  # training is under way
+            break
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    rest = proc.communicate(timeout=60)[0]
+    assert proc.returncode == 130, rest
+    (run_dir,) = tmp_path.iterdir()
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert state["counters"]["epoch"] >= 2 and "interrupted" in rest
+    out = run_script("--resume", str(run_dir / "checkpoint.pt"), "--n-epochs", str(state["counters"]["epoch"] + 1),
+                     runs_dir=tmp_path)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+
+
+# ------------------------------------------------------------------------------------------------
+# 8. Bad command lines
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--n-epochs", "-1"], "-1"),
+        (["--n-updates", "-3"], "-3"),
+        (["--sp-ratio", "1.5"], "1.5"),
+        (["--sp-ratio", "-0.1"], "-0.1"),
+        (["--her-strategy", "episode"], "'episode'"),
+        (["--n-blocks", "6"], "6"),
+        (["--resume", "/nonexistent/checkpoint.pt"], "/nonexistent/checkpoint.pt"),
+        (["--batch-size", "many"], "'many'"),
+    ],
+)
+def test_bad_command_line_values_exit_2_naming_the_value(argv, named):
+    with pytest.raises(SystemExit) as e:
+        gh.parse_args(argv)
+    assert e.value.code == 2
+
+
+@pytest.mark.parametrize("content", [b"not a checkpoint", b""])
+def test_an_unreadable_checkpoint_exits_2_with_one_line(tmp_path, content):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(content)
+    out = run_script("--resume", str(bad), runs_dir=tmp_path)
+    assert out.returncode == 2 and str(bad) in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_help_lists_every_field_with_its_docstring():
+    out = subprocess.run([sys.executable, "gangstr_hme.py", "--help"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0
+    for flag, words in [("--sp-ratio", "probability that a cycle is social"), ("--her-strategy", "HER relabelling")]:
+        assert flag in out.stdout and words in " ".join(out.stdout.split())
+    assert os.path.exists(ROOT / "gangstr_hme.py")
