@@ -187,10 +187,13 @@ class GraphIndex:
         lookup = {(int(i), int(j)): k for k, (i, j) in enumerate(og.close_pairs(n_blocks))}
         close = [lookup[min(i, j), max(i, j)] for i, j in zip(src, dst, strict=True)]
         self.n = n_blocks
-        self.src = torch.tensor(src, device=device)
-        self.dst = torch.tensor(dst, device=device)
-        self.close = torch.as_tensor(close, device=device)
-        self.above = torch.arange(len(src), device=device) + len(og.close_pairs(n_blocks))  # "i on j"
+        # Edge inputs are one gather from [g - ag (dim), positions (3n)]: for edge (i, j), the entries
+        # close{i,j} and "i on j" of g - ag, then the positions of i and j.
+        dim = og.config_dim(n_blocks)
+        above = np.arange(len(src)) + len(og.close_pairs(n_blocks))
+        pos = dim + 3 * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
+        index = np.column_stack([close, above, pos.reshape(len(src), 6)])  # (E, 8)
+        self.edge_index = torch.tensor(index.ravel(), device=device)
 
 
 def split_obs(obs: torch.Tensor, n: int):
@@ -211,12 +214,9 @@ class Critic(nn.Module):
 
     def messages(self, gi: GraphIndex, blocks, ag, g) -> torch.Tensor:
         """(B, n, 24): node i = max over its outgoing edges (i, j) of the edge messages."""
-        diff = g - ag
-        pos = blocks[..., :3]
-        edges = torch.cat(
-            [diff[:, gi.close, None], diff[:, gi.above, None], pos[:, gi.src], pos[:, gi.dst]], dim=-1
-        )  # (B, E, 8)
-        m = self.message(edges)
+        b = len(blocks)
+        features = torch.cat([g - ag, blocks[..., :3].reshape(b, -1)], dim=1)
+        m = self.message(features[:, gi.edge_index].reshape(b, -1, 8))  # (B, E, 8) -> (B, E, 24)
         return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
 
     def q(self, body, blocks, action, msg):
@@ -242,11 +242,11 @@ class Actor(nn.Module):
     def sample(self, body, blocks, msg):
         """Squashed Gaussian action and its log-probability (with the tanh correction)."""
         mean, log_std = self(body, blocks, msg)
-        normal = torch.distributions.Normal(mean, log_std.exp())
-        u = normal.rsample()
+        noise = torch.randn_like(mean)
+        u = mean + log_std.exp() * noise  # reparameterised Gaussian sample
         a = torch.tanh(u)
-        log_prob = normal.log_prob(u).sum(-1) - torch.log(1 - a.pow(2) + 1e-6).sum(-1)
-        return a, log_prob
+        gauss_log_prob = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+        return a, (gauss_log_prob - torch.log(1 - a.pow(2) + 1e-6)).sum(-1)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -340,9 +340,9 @@ class SAC:
         body, blocks = split_obs(o, self.gi.n)
         ag, g = torch.as_tensor(ag[None], device=self.device), torch.as_tensor(g[None], device=self.device)
         msg = self.critic.messages(self.gi, blocks, ag, g)
-        if deterministic:
-            return torch.tanh(self.actor(body, blocks, msg)[0])[0].cpu().numpy()
-        return self.actor.sample(body, blocks, msg)[0][0].cpu().numpy()
+        mean, log_std = self.actor(body, blocks, msg)
+        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # no log-prob needed
+        return torch.tanh(u)[0].cpu().numpy()
 
     def losses(self, batch: dict):
         """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors."""
@@ -873,13 +873,14 @@ def main(argv=None):
 
     try:
         while learner.epoch < args.n_epochs:
-            times = dict(collect=0.0, update=0.0, eval=0.0)
+            times, reached = dict(collect=0.0, update=0.0, eval=0.0), []
             learner.plan_seconds = 0.0
             epoch_start, steps_start = time.perf_counter(), learner.segments * args.segment_len
             while learner.cycle < args.n_cycles:
                 t = time.perf_counter()
                 segments = learner.autotelic_cycle()
                 learner.learn_from(segments)
+                reached += [s.success for s in segments]
                 times["collect"] += time.perf_counter() - t
                 t = time.perf_counter()
                 info = learner.train()
@@ -901,6 +902,7 @@ def main(argv=None):
                 segments=learner.segments,
                 env_steps=steps,
                 global_sr=sr["global"],
+                train_success=float(np.mean(reached)) if reached else 0.0,
                 **{f"sr_{k}": sr[k] for k in learner.classes},
                 **{f"encounters_{k}": v for k, v in learner.encounters().items()},
                 agent_nodes=learner.graph.n_nodes,
