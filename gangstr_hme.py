@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import collections
 import csv
 import dataclasses
 import heapq
@@ -48,6 +49,10 @@ class Args:
     """number of blocks (2-5; the paper uses 5)"""
     sp_ratio: float = 0.0
     """probability that a cycle is social (0.2 = the paper's SP-20%, 0 = pure autotelic GANGSTR)"""
+    strategy: str = "frontier-and-beyond"
+    """what the social partner proposes: 'frontier-and-beyond' (the paper's), 'frontier' or 'beyond'"""
+    internalization_prob: float = 0.5
+    """probability that a non-social cycle rehearses a failed social proposal (0 = the 'NI' ablation)"""
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
     n_cycles: int = 50
@@ -135,6 +140,9 @@ def parse_args(argv=None) -> Args:
     return args
 
 
+STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
+
+
 def check_args(a: Args) -> str | None:
     """The first bad value in a, described, or None."""
     for name in ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size"):
@@ -143,7 +151,9 @@ def check_args(a: Args) -> str | None:
     for name in ("n_updates", "her_k", "eval_goals_per_class", "threads", "k_shortest", "stable_steps"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
-    for name in ("sp_ratio", "shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
+    if a.strategy not in STRATEGIES:
+        return f"--strategy must be one of {', '.join(STRATEGIES)}, got {a.strategy!r}"
+    for name in ("sp_ratio", "internalization_prob", "shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
@@ -176,6 +186,16 @@ def init_weights(module: nn.Module):
         if isinstance(m, nn.Linear):
             nn.init.xavier_uniform_(m.weight)
             nn.init.zeros_(m.bias)
+
+
+def node_readout(node: nn.Sequential, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """sum_i node([glob, local_i]) for a node net Linear -> ReLU -> Linear -> ReLU. The first layer's
+    columns for the graph-wide features (action, body) are applied once per graph, not once per node:
+    the same function, with fewer multiply-adds and no copies of glob for every node."""
+    first, second = node[0], node[2]
+    k = glob.shape[-1]
+    h = F.linear(local, first.weight[:, k:]) + F.linear(glob, first.weight[:, :k], first.bias)[:, None]
+    return F.relu(second(F.relu(h))).sum(1)
 
 
 class GraphIndex:
@@ -220,9 +240,12 @@ class Critic(nn.Module):
         return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
 
     def q(self, body, blocks, action, msg):
-        b, n = blocks.shape[:2]
-        x = torch.cat([action[:, None].expand(b, n, 4), body[:, None].expand(b, n, BODY), blocks, msg], dim=-1)
-        return [head(node(x).sum(1)).squeeze(-1) for node, head in zip(self.q_nodes, self.q_heads, strict=True)]
+        """Twin Q values; node input [action, body, block i, message i], summed over nodes."""
+        glob, local = torch.cat([action, body], dim=1), torch.cat([blocks, msg], dim=-1)
+        return [
+            head(node_readout(node, glob, local)).squeeze(-1)
+            for node, head in zip(self.q_nodes, self.q_heads, strict=True)
+        ]
 
 
 class Actor(nn.Module):
@@ -235,8 +258,8 @@ class Actor(nn.Module):
         init_weights(self)
 
     def forward(self, body, blocks, msg):
-        b, n = blocks.shape[:2]
-        h = self.head(self.node(torch.cat([body[:, None].expand(b, n, BODY), blocks, msg], dim=-1)).sum(1))
+        """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
+        h = self.head(node_readout(self.node, body, torch.cat([blocks, msg], dim=-1)))
         return self.mean(h), self.log_std(h).clamp(-20, 2)
 
     def sample(self, body, blocks, msg):
@@ -417,7 +440,7 @@ class SemanticGraph:
         self.edge_log: list[tuple[int, int, int]] = []  # (u, v, class) in creation order
         self.class_of_key: dict[int, int] = {}  # canonical key of an ordered pair -> SR class
         self.sr: list[float] = []  # SR class -> success-rate estimate
-        self._reverse_csr = None  # cached predecessor lists as CSR, for the A* heuristic
+        self._cache: dict = {}  # arrays derived from the edges (CSR, edge keys); cleared on any change
 
     @property
     def n_nodes(self) -> int:
@@ -437,6 +460,7 @@ class SemanticGraph:
                 self.masks.append(m)
                 self.succ.append([])
                 self.succ_class.append([])
+        self._cache.clear()
 
     def edge_class(self, s: int, f: int) -> int:
         """SR class of the edge s -> f, creating it with all its joint permutations if it is new."""
@@ -454,7 +478,7 @@ class SemanticGraph:
         self.succ[u].append(v)
         self.succ_class[u].append(c)
         self.edge_log.append((u, v, c))
-        self._reverse_csr = None
+        self._cache.clear()
 
     def update(self, start: int, final: int, target: int, success: bool):
         """Learn from one stable segment (SPEC §6): new nodes, a new edge for a new small step, and the
@@ -477,16 +501,18 @@ class SemanticGraph:
         if s is None or t is None or s == t:
             return None
         cost = (-np.log(np.clip(self.sr, 1e-12, 1.0))).tolist()
-        dist, prev, heap = {s: 0.0}, {s: -1}, [(0.0, s)]
+        dist, prev, heap = [math.inf] * self.n_nodes, [-1] * self.n_nodes, [(0.0, s)]
+        dist[s] = 0.0
+        succ, succ_class = self.succ, self.succ_class
         while heap:
             d, u = heapq.heappop(heap)
             if u == t:
-                return self._trace(prev, t)
+                return [self.masks[i] for i in self._trace(prev, t)]
             if d > dist[u]:
                 continue  # a stale heap entry
-            for v, c in zip(self.succ[u], self.succ_class[u], strict=True):
+            for v, c in zip(succ[u], succ_class[u]):  # noqa: B905 (equal lengths by construction; hot loop)
                 nd = d + cost[c]
-                if nd < dist.get(v, math.inf):
+                if nd < dist[v]:
                     dist[v], prev[v] = nd, u
                     heapq.heappush(heap, (nd, v))
         return None
@@ -498,7 +524,7 @@ class SemanticGraph:
         s, t = self.node_of.get(start), self.node_of.get(goal)
         if s is None or t is None or s == t or k < 1:
             return []
-        hops = og.bfs_hops(*self._predecessors(), t).tolist()
+        hops = og.bfs_hops(*self._csr(1), t).tolist()  # hop count to t along predecessor lists
         first = self._astar(s, t, hops, set(), set())
         if first is None:
             return []
@@ -535,17 +561,33 @@ class SemanticGraph:
                 heapq.heappush(heap, (nd + hops[v], -nd, v))  # ties: deepest first
         return None
 
-    def _predecessors(self):
-        """Predecessor lists as CSR (indptr, indices), rebuilt only after the graph changed."""
-        if self._reverse_csr is None:
+    def _csr(self, by: int) -> tuple[np.ndarray, np.ndarray]:
+        """Edges grouped by their tail (by=0: successor lists) or head (by=1: predecessor lists), as CSR."""
+        if by not in self._cache:
             edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
-            order = np.argsort(edges[:, 1], kind="stable")
-            indptr = np.searchsorted(edges[order, 1], np.arange(self.n_nodes + 1))
-            self._reverse_csr = (indptr, edges[order, 0])
-        return self._reverse_csr
+            order = np.argsort(edges[:, by], kind="stable")
+            indptr = np.searchsorted(edges[order, by], np.arange(self.n_nodes + 1))
+            self._cache[by] = (indptr, edges[order, 1 - by])
+        return self._cache[by]
+
+    def reachable(self, start: int) -> np.ndarray:
+        """Masks of the nodes reachable from config `start` along agent edges, start included."""
+        s = self.node_of.get(start)
+        if s is None:
+            return np.array([start], dtype=np.int64)
+        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self._csr(0), s) >= 0]
+
+    def edge_keys(self) -> np.ndarray:
+        """Sorted int keys (mask_u << dim | mask_v) of the agent's edges, for set look-ups in numpy."""
+        if "keys" not in self._cache:
+            masks = np.asarray(self.masks, dtype=np.int64)
+            edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
+            self._cache["keys"] = np.sort((masks[edges[:, 0]] << self.dim) | masks[edges[:, 1]])
+        return self._cache["keys"]
 
     @staticmethod
-    def _trace(prev: dict, t: int) -> list[int]:
+    def _trace(prev, t: int) -> list[int]:
+        """Walk the predecessor map (a list or a dict, -1 at the start) back from t."""
         path = [t]
         while prev[path[-1]] >= 0:
             path.append(prev[path[-1]])
@@ -590,6 +632,47 @@ def is_small_step(a: int, b: int, n: int) -> bool:
 
 
 # ------------------------------------------------------------------------------------------------
+# HME: the social partner (SPEC §7; paper Sections 3.1 and 3.4)
+# ------------------------------------------------------------------------------------------------
+class SocialPartner:
+    """Knows every config and which ones are semantically adjacent (the oracle graph, SPEC §4), and
+    sees the agent's semantic graph. It proposes a frontier goal (a known config from which the agent
+    has not yet tried some adjacent config) and then a goal just beyond it."""
+
+    def __init__(self, n_blocks: int):
+        self.oracle = og.OracleGraph(n_blocks)
+        heads = np.repeat(np.arange(self.oracle.n_nodes), np.diff(self.oracle.indptr))
+        self.edge_heads = self.oracle.masks[heads]  # every oracle edge, as (head, tail) masks
+        self.edge_tails = self.oracle.masks[self.oracle.indices]
+        self.dim = og.config_dim(n_blocks)
+
+    def _untried(self, graph: SemanticGraph) -> np.ndarray:
+        """Oracle edges whose head is an agent node but that the agent graph lacks."""
+        keys = (self.edge_heads << self.dim) | self.edge_tails
+        known = np.isin(self.edge_heads, np.asarray(graph.masks, dtype=np.int64))
+        return known & ~np.isin(keys, graph.edge_keys())
+
+    def stepping_stones(self, graph: SemanticGraph) -> np.ndarray:
+        """Agent nodes that are oracle nodes with an oracle neighbour the agent has no edge to."""
+        return np.unique(self.edge_heads[self._untried(graph)])
+
+    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator) -> int | None:
+        """Uniform among the stepping stones reachable in the agent graph from `current` (included)."""
+        stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
+        return int(stones[rng.integers(len(stones))]) if len(stones) else None
+
+    def beyond_goal(self, graph: SemanticGraph, config: int, rng: np.random.Generator) -> int | None:
+        """Uniform among the oracle neighbours c' of `config` with no agent edge config -> c'."""
+        i = int(self.oracle.index(og.from_mask(config, self.oracle.n_blocks)))
+        if i < 0:
+            return None
+        tails = self.oracle.masks[self.oracle.neighbour_indices(i)]
+        keys = (np.int64(config) << self.dim) | tails
+        beyond = tails[~np.isin(keys, graph.edge_keys())]
+        return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
+
+
+# ------------------------------------------------------------------------------------------------
 # Rollouts: segments, paths and cycles (SPEC §5, §6)
 # ------------------------------------------------------------------------------------------------
 @dataclass
@@ -627,14 +710,15 @@ def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bo
     return Segment(o, ag, goal.copy(), actions, success, stable)
 
 
-def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool) -> list[Segment]:
-    """One segment per sub-goal of path[1:], moving on only while the sub-goal was reached exactly."""
+def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool):
+    """One segment per sub-goal of path[1:], moving on only while the sub-goal was reached exactly.
+    Returns the segments and whether the path's last config was reached."""
     segments = []
     for sub in path[1 : 1 + budget]:
         segments.append(run_segment(env, agent, og.from_mask(sub, args.n_blocks), args, deterministic))
         if not segments[-1].success:
             break
-    return segments
+    return segments, len(segments) == len(path) - 1 and segments[-1].success
 
 
 def current_config(env) -> int:
@@ -657,8 +741,23 @@ class Learner:
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
         self.plan_seconds = 0.0  # planning + graph updates, for the speed report
+        self.sp = SocialPartner(args.n_blocks)
+        self.internalization_buffer: list[tuple[int, int]] = []  # failed (frontier, beyond) proposals
+        self.stats = collections.Counter()  # per-epoch counts: cycles of each kind, SP proposals
 
-    # --- goal samplers --------------------------------------------------------------------------
+    # --- goal samplers: autotelic, social (HME) and rehearsal ------------------------------------
+    def run_cycle(self) -> list[Segment]:
+        """One cycle's segments (SPEC §7): social with probability sp_ratio; otherwise a rehearsal of
+        failed social proposals with probability internalization_prob (if any), else autotelic."""
+        self.stats["cycles"] += 1
+        if self.args.sp_ratio > 0 and self.rng.random() < self.args.sp_ratio:
+            self.stats["social_cycles"] += 1
+            return self.social_cycle()
+        if self.internalization_buffer and self.rng.random() < self.args.internalization_prob:
+            self.stats["rehearsal_cycles"] += 1
+            return self.rehearsal_cycle()
+        return self.autotelic_cycle(self.args.n_segments)
+
     def autotelic_goal(self) -> int:
         """Uniform over the agent's nodes; before any node exists, a uniform random +-1 vector."""
         node = self.graph.sample_node(self.rng)
@@ -666,22 +765,103 @@ class Learner:
             return int(og.to_mask(self.rng.choice([-1.0, 1.0], size=self.env.goal_dim)))
         return node
 
-    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool) -> list[Segment]:
+    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool):
         """Plan from the current config to goal on the semantic graph and follow the path."""
         t = time.perf_counter()
         path = self.graph.plan(current_config(self.env), goal, self.rng, explore)
         self.plan_seconds += time.perf_counter() - t
         return follow_path(self.env, self.agent, path, budget, self.args, deterministic)
 
-    def autotelic_cycle(self) -> list[Segment]:
-        """Long-term goals from the agent's own graph until the cycle's segments are spent; reset the
-        env after each long-term goal (SPEC §6)."""
+    def go_to_frontier(self, frontier: int, budget: int):
+        """Deterministic policy along the safest path (SPEC §7); already there counts as arrived."""
+        if current_config(self.env) == frontier:
+            return [], True
+        return self.pursue(frontier, budget, explore=False, deterministic=True)
+
+    def autotelic_cycle(self, budget: int) -> list[Segment]:
+        """Long-term goals from the agent's own graph until `budget` segments are spent; reset the env
+        after each long-term goal (SPEC §6)."""
         segments = []
-        while len(segments) < self.args.n_segments:
+        while len(segments) < budget:
             self.env.reset()
             self.goals += 1
-            segments += self.pursue(self.autotelic_goal(), self.args.n_segments - len(segments), True, False)
+            segments += self.pursue(self.autotelic_goal(), budget - len(segments), True, False)[0]
         return segments
+
+    def social_cycle(self) -> list[Segment]:
+        """Reset; the social partner proposes a frontier goal and the agent goes there; then goals just
+        beyond, chained while they succeed; a failed one is stored for rehearsal. When the partner has
+        nothing to propose, the rest of the cycle is autotelic (SPEC §7)."""
+        a, segments = self.args, []
+        while len(segments) < a.n_segments:
+            self.env.reset()
+            self.goals += 1
+            here, left = current_config(self.env), a.n_segments - len(segments)
+            frontier = self.sp.frontier_goal(self.graph, here, self.rng)
+            if a.strategy == "frontier":  # the frontier goal only, pursued like the agent's own goals
+                if frontier is None:
+                    break
+                self.propose("frontier", frontier)
+                segments += self.pursue(frontier, left, explore=True, deterministic=False)[0]
+            elif a.strategy == "beyond" and frontier is not None:  # the frontier stays hidden
+                beyond = self.sp.beyond_goal(self.graph, frontier, self.rng)
+                self.propose("beyond", beyond)
+                segs, reached = self.pursue(beyond, left, explore=True, deterministic=False)
+                segments += segs
+                if not reached:
+                    self.internalization_buffer.append((frontier, beyond))
+            elif frontier is None:  # no reachable frontier: goals beyond the current config, directly
+                segs = self.beyond_goals(here, left)
+                if not segs:
+                    break
+                segments += segs
+            else:
+                self.propose("frontier", frontier)
+                segs, arrived = self.go_to_frontier(frontier, left)
+                segments += segs
+                if arrived:
+                    segments += self.beyond_goals(frontier, a.n_segments - len(segments))
+        return segments + self.autotelic_cycle(a.n_segments - len(segments))
+
+    def beyond_goals(self, start: int, budget: int) -> list[Segment]:
+        """Goals just beyond `start`, one stochastic segment each, chained while they succeed. On a
+        failure the pair (the config the attempt started from, the beyond goal) is internalized: after
+        chaining, that config is the frontier the failed step left from."""
+        segments = []
+        while len(segments) < budget:
+            beyond = self.sp.beyond_goal(self.graph, start, self.rng)
+            if beyond is None:
+                break
+            self.propose("beyond", beyond)
+            segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks), self.args,
+                                        deterministic=False))  # fmt: skip
+            if not segments[-1].success:
+                self.internalization_buffer.append((start, beyond))
+                break
+            start = beyond
+        return segments
+
+    def rehearsal_cycle(self) -> list[Segment]:
+        """Internalization (SPEC §7): reset, draw a stored (frontier, beyond) pair, go to the frontier
+        deterministically, then attempt the beyond goal, without reset, until it succeeds or the cycle's
+        segments are spent."""
+        n, segments = self.args.n_segments, []
+        while len(segments) < n:
+            self.env.reset()
+            self.goals += 1
+            frontier, beyond = self.internalization_buffer[self.rng.integers(len(self.internalization_buffer))]
+            segs, arrived = self.go_to_frontier(frontier, n - len(segments))
+            segments += segs
+            while arrived and len(segments) < n:
+                segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks),
+                                            self.args, deterministic=False))  # fmt: skip
+                if segments[-1].success:
+                    break
+        return segments
+
+    def propose(self, kind: str, goal: int):
+        name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
+        self.stats[f"sp_{kind}_{name or 'other'}"] += 1
 
     # --- learning -------------------------------------------------------------------------------
     def learn_from(self, segments: list[Segment]):
@@ -721,11 +901,24 @@ class Learner:
                 self.env.reset()
                 path = self.graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
                 path = [path[0]] + path[1:][-a.max_eval_subgoals :]
-                segments = follow_path(self.env, self.agent, path, len(path) - 1, a, deterministic=True)
-                wins += len(segments) == len(path) - 1 and segments[-1].success
+                wins += follow_path(self.env, self.agent, path, len(path) - 1, a, deterministic=True)[1]
             sr[name] = wins / max(1, a.eval_goals_per_class)
         sr["global"] = float(np.mean([sr[k] for k in self.classes]))
         return sr
+
+    def hme_stats(self) -> dict:
+        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the
+        internalization buffer, and the partner's proposals per class (frontier and beyond)."""
+        st, cycles = self.stats, max(1, self.stats["cycles"])
+        names = [*self.classes, "other"]
+        return dict(
+            social_share=st["social_cycles"] / cycles,
+            rehearsal_share=st["rehearsal_cycles"] / cycles,
+            stepping_stones=len(self.sp.stepping_stones(self.graph)),
+            internalization_size=len(self.internalization_buffer),
+            **{f"sp_frontier_{k}": st[f"sp_frontier_{k}"] for k in names},
+            **{f"sp_beyond_{k}": st[f"sp_beyond_{k}"] for k in names},
+        )
 
     def encounters(self) -> dict[str, int]:
         """Distinct configs of each class met so far."""
@@ -750,6 +943,7 @@ class Learner:
             ),
             graph=self.graph.state_dict(),
             encountered=torch.tensor(sorted(self.encountered), dtype=torch.int64),
+            internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
             rng=json.dumps(self.rng.bit_generator.state),
             env_rng=json.dumps(self.env.np_random.bit_generator.state),
             torch_rng=torch.get_rng_state(),
@@ -781,6 +975,7 @@ class Learner:
         ag.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
         self.graph.load_state_dict(s["graph"])
         self.encountered = set(s["encountered"].tolist())
+        self.internalization_buffer = [tuple(p) for p in s["internalization"].tolist()]
         self.rng.bit_generator.state = json.loads(s["rng"])
         self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
         torch.set_rng_state(s["torch_rng"])
@@ -874,16 +1069,18 @@ def main(argv=None):
     try:
         while learner.epoch < args.n_epochs:
             times, reached = dict(collect=0.0, update=0.0, eval=0.0), []
+            info = dict.fromkeys(("critic_loss", "actor_loss", "q", "target", "entropy"), math.nan)  # fixed columns
+            learner.stats.clear()
             learner.plan_seconds = 0.0
             epoch_start, steps_start = time.perf_counter(), learner.segments * args.segment_len
             while learner.cycle < args.n_cycles:
                 t = time.perf_counter()
-                segments = learner.autotelic_cycle()
+                segments = learner.run_cycle()
                 learner.learn_from(segments)
                 reached += [s.success for s in segments]
                 times["collect"] += time.perf_counter() - t
                 t = time.perf_counter()
-                info = learner.train()
+                info.update(learner.train())
                 times["update"] += time.perf_counter() - t
                 learner.cycle += 1
                 if learner.cycle % max(1, args.n_cycles // 10) == 0 or learner.cycle == args.n_cycles:
@@ -905,6 +1102,7 @@ def main(argv=None):
                 train_success=float(np.mean(reached)) if reached else 0.0,
                 **{f"sr_{k}": sr[k] for k in learner.classes},
                 **{f"encounters_{k}": v for k, v in learner.encounters().items()},
+                **learner.hme_stats(),
                 agent_nodes=learner.graph.n_nodes,
                 agent_edges=learner.graph.n_edges,
                 sr_classes=len(learner.graph.sr),

@@ -337,6 +337,20 @@ def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_con
     assert g.plan(0, 99, rng, explore=False) == [0, 99]  # unknown goal
 
 
+def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():
+    args = gh.Args(n_blocks=3)
+    g = gh.SemanticGraph(3, args)
+    apart, c01, stack = M(3), M(3, close=[(0, 1)]), M(3, close=[(0, 1)], above=[(0, 1)])
+    g.update(apart, c01, target=c01, success=True)
+    g.update(c01, stack, target=stack, success=True)
+    rng = np.random.default_rng(0)
+    expected = [apart, c01, stack]
+    assert g.safest_path(apart, stack) == expected
+    assert g.k_shortest_paths(apart, stack, 5)[0] == expected
+    for explore in (False, True):
+        assert g.plan(apart, stack, rng, explore) == expected
+
+
 def test_graph_state_round_trips_through_a_checkpoint(tmp_path):
     g = random_graph(9, 0.4, 3)
     torch.save(g.state_dict(), tmp_path / "g.pt")

@@ -1,0 +1,297 @@
+"""gangstr_hme.py, the social partner: stepping stones, frontier and beyond goals, social cycles,
+internalization and rehearsal, the ablations (SPEC §7)."""
+
+import csv
+import subprocess
+import sys
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import gangstr_hme as gh
+import oracle_graph as og
+
+ROOT = Path(__file__).resolve().parent.parent
+N = 3
+
+
+def M(close=(), above=()):
+    return int(og.to_mask(og.make_config(N, close=close, above=above)))
+
+
+APART = M()
+C01 = M(close=[(0, 1)])
+
+
+@pytest.fixture(scope="module")
+def sp():
+    return gh.SocialPartner(N)
+
+
+def agent_graph(edges=(), nodes=()):
+    """An agent graph holding `nodes` and the edges (s, f) (each with all its joint permutations)."""
+    g = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+    for m in nodes:
+        g.add_config(m)
+    for s, f in edges:
+        g.add_config(s)
+        g.add_config(f)
+        g.edge_class(s, f)
+    return g
+
+
+def brute_force_stones(sp, g):
+    """Agent nodes in the oracle with an oracle neighbour the agent has no edge to (plain Python)."""
+    agent_edges = {(g.masks[u], g.masks[v]) for u, v, _ in g.edge_log}
+    stones = set()
+    for m in g.masks:
+        if m in sp.oracle.masks:
+            nbrs = og.to_mask(sp.oracle.neighbours(og.from_mask(m, N))).tolist()
+            if any((m, c) not in agent_edges for c in nbrs):
+                stones.add(m)
+    return stones
+
+
+def reachable(g, start):
+    seen, todo = {start}, deque([start])
+    while todo:
+        u = todo.popleft()
+        for v in g.succ[g.node_of[u]] if u in g.node_of else []:
+            if g.masks[v] not in seen:
+                seen.add(g.masks[v])
+                todo.append(g.masks[v])
+    return seen
+
+
+def random_agent_graph(sp, seed, p_node=0.6, p_edge=0.5):
+    """Random oracle nodes, each with a random share of its oracle edges."""
+    rng = np.random.default_rng(seed)
+    nodes = [int(m) for m in sp.oracle.masks if rng.random() < p_node]
+    edges = [
+        (m, int(c))
+        for m in nodes
+        for c in og.to_mask(sp.oracle.neighbours(og.from_mask(m, N)))
+        if rng.random() < p_edge
+    ]
+    return agent_graph(edges, nodes)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Stepping stones, frontier and beyond goals on hand-built agent graphs over the 3-block oracle
+# ------------------------------------------------------------------------------------------------
+def test_a_known_config_is_a_stepping_stone_until_every_oracle_neighbour_has_an_agent_edge(sp):
+    neighbours = og.to_mask(sp.oracle.neighbours(og.from_mask(APART, N))).tolist()
+    assert set(og.OracleGraph(N).class_of(og.from_mask(neighbours, N))) == {"C1", "S2"}  # push or stack
+    g = agent_graph(nodes=[APART])
+    assert sp.stepping_stones(g).tolist() == [APART]
+    g = agent_graph([(APART, C01)])  # edges to the 3 close pairs, not yet to the 6 stacks
+    assert APART in sp.stepping_stones(g)
+    g = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    assert APART not in sp.stepping_stones(g)
+    assert set(sp.stepping_stones(g).tolist()) == brute_force_stones(sp, g)
+
+
+def test_configs_outside_the_oracle_are_never_stepping_stones(sp):
+    impossible = M(above=[(0, 1), (1, 0)])
+    g = agent_graph(nodes=[impossible])
+    assert len(sp.stepping_stones(g)) == 0
+    assert sp.beyond_goal(g, impossible, np.random.default_rng(0)) is None
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_stepping_stones_match_a_brute_force_check(sp, seed):
+    g = random_agent_graph(sp, seed)
+    assert set(sp.stepping_stones(g).tolist()) == brute_force_stones(sp, g)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp, seed):
+    g = random_agent_graph(sp, seed, p_edge=0.3)
+    rng = np.random.default_rng(seed)
+    stones = brute_force_stones(sp, g)
+    for start in g.masks[:: max(1, g.n_nodes // 6)]:
+        allowed = stones & reachable(g, start)
+        drawn = {sp.frontier_goal(g, start, rng) for _ in range(60)}
+        if not allowed:
+            assert drawn == {None}
+        else:
+            assert drawn <= allowed and len(drawn) >= min(2, len(allowed))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_beyond_goals_are_oracle_neighbours_without_an_agent_edge(sp, seed):
+    g = random_agent_graph(sp, seed)
+    rng = np.random.default_rng(seed)
+    agent_edges = {(g.masks[u], g.masks[v]) for u, v, _ in g.edge_log}
+    for m in g.masks:
+        nbrs = set(og.to_mask(sp.oracle.neighbours(og.from_mask(m, N))).tolist())
+        allowed = {c for c in nbrs if (m, c) not in agent_edges}
+        drawn = {sp.beyond_goal(g, m, rng) for _ in range(30)}
+        assert drawn == {None} if not allowed else drawn <= allowed
+
+
+def test_with_no_stepping_stone_left_the_partner_proposes_nothing(sp):
+    everything = [(int(sp.edge_heads[k]), int(sp.edge_tails[k])) for k in range(len(sp.edge_heads))]
+    g = agent_graph(everything)
+    assert len(sp.stepping_stones(g)) == 0
+    rng = np.random.default_rng(0)
+    assert all(sp.frontier_goal(g, m, rng) is None and sp.beyond_goal(g, m, rng) is None for m in g.masks)
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. The social cycle, step by step, with a scripted stand-in for the policy
+# ------------------------------------------------------------------------------------------------
+class ScriptedWorld:
+    """Replaces the policy and the physics: a segment toward goal g succeeds iff script(g, deterministic)
+    says so, and the world's config becomes g on success. Every reset goes back to `start`."""
+
+    def __init__(self, learner, monkeypatch, start, script):
+        self.config, self.start, self.script, self.log = start, start, script, []
+        monkeypatch.setattr(learner.env, "reset", self.reset)
+        monkeypatch.setattr(gh, "current_config", lambda env: self.config)
+        monkeypatch.setattr(gh, "run_segment", self.segment)
+
+    def reset(self, **kw):
+        self.config = self.start
+        self.log.append("reset")
+
+    def segment(self, env, agent, goal, args, deterministic):
+        g = int(og.to_mask(goal))
+        before = self.config
+        success = self.script(g, deterministic)
+        self.config = g if success else before
+        self.log.append((g, "det" if deterministic else "stoch", success))
+        ag = np.tile(og.from_mask(before, N), (args.segment_len + 1, 1))
+        ag[-1] = og.from_mask(self.config, N)
+        zeros = np.zeros((args.segment_len + 1, 55), np.float32)
+        return gh.Segment(zeros, ag, goal, np.zeros((args.segment_len, 4), np.float32), success, True)
+
+
+def hme_learner(**kw):
+    args = dict(n_blocks=N, sp_ratio=1.0, segment_len=4, stable_steps=2) | kw
+    return gh.Learner(gh.Args(**args), torch.device("cpu"))
+
+
+def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
+    learner = hme_learner()
+    # The agent has made every move from "all apart" (to each close pair and each 2-stack) and nothing
+    # since: those configs are its frontier, "all apart" is not.
+    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    frontiers = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
+    assert set(learner.sp.stepping_stones(learner.graph).tolist()) == frontiers
+    beyond_tries = []
+
+    def script(goal, deterministic):
+        if deterministic:
+            return True  # going to the frontier works
+        beyond_tries.append(goal)
+        return len(beyond_tries) % 2 == 1  # beyond goals: success, failure, success, failure, ...
+
+    world = ScriptedWorld(learner, monkeypatch, APART, script)
+    segments = learner.social_cycle()
+    assert len(segments) == learner.args.n_segments == 10
+    log = world.log
+    i, episodes = 0, 0
+    while i < len(log):
+        assert log[i] == "reset"  # every episode starts from a reset
+        episodes += 1
+        frontier, mode, ok = log[i + 1]
+        assert frontier in frontiers and mode == "det" and ok  # deterministic, along the safest path
+        i += 2
+        start = frontier
+        while i < len(log) and log[i] != "reset":
+            beyond, mode, ok = log[i]
+            assert mode == "stoch"  # beyond goals: one segment with the stochastic policy
+            nbrs = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(start, N))).tolist())
+            assert beyond in nbrs  # adjacent to where the attempt starts: chaining
+            i += 1
+            if ok:
+                start = beyond
+            else:
+                assert (start, beyond) in learner.internalization_buffer  # a failure is internalized
+                assert i == len(log) or log[i] == "reset"  # ... and the episode ends
+    failures = [e for e in log if e != "reset" and e[1] == "stoch" and not e[2]]
+    assert len(learner.internalization_buffer) == len(failures) and episodes >= 2
+    assert learner.stats["sp_frontier_C1"] + learner.stats["sp_frontier_S2"] == episodes
+
+
+def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_goal(monkeypatch):
+    learner = hme_learner(sp_ratio=0.0)
+    learner.graph = agent_graph([(APART, C01)])
+    stack = M(close=[(0, 1)], above=[(0, 1)])
+    learner.internalization_buffer = [(C01, stack)]
+    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)  # beyond attempts keep failing
+    segments = learner.rehearsal_cycle()
+    assert len(segments) == 10
+    assert world.log[:3] == ["reset", (C01, "det", True), (stack, "stoch", False)]
+    assert world.log[3:] == [(stack, "stoch", False)] * 8  # no reset: the rest of the cycle on the beyond goal
+
+
+def test_a_partner_with_nothing_to_propose_leaves_the_cycle_autotelic(monkeypatch, sp):
+    learner = hme_learner()
+    everything = [(int(sp.edge_heads[k]), int(sp.edge_tails[k])) for k in range(len(sp.edge_heads))]
+    learner.graph = agent_graph(everything)
+    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: False)
+    assert len(learner.social_cycle()) == 10
+    assert not any(k.startswith("sp_") for k in learner.stats) and not learner.internalization_buffer
+    assert all(e == "reset" or e[1] == "stoch" for e in world.log)  # autotelic goals, training policy
+
+
+def test_cycle_kinds_follow_sp_ratio_and_internalization_prob(monkeypatch):
+    learner = hme_learner(sp_ratio=0.3, internalization_prob=0.5, n_segments=1)
+    learner.graph = agent_graph([(APART, C01)])
+    learner.internalization_buffer = [(C01, M(close=[(0, 1)], above=[(0, 1)]))]
+    ScriptedWorld(learner, monkeypatch, APART, lambda g, det: False)
+    for _ in range(3000):
+        learner.run_cycle()
+    social = learner.stats["social_cycles"] / 3000
+    rehearsal = learner.stats["rehearsal_cycles"] / 3000
+    assert abs(social - 0.3) < 4 * np.sqrt(0.3 * 0.7 / 3000)
+    assert abs(rehearsal - 0.35) < 4 * np.sqrt(0.35 * 0.65 / 3000)  # half of the non-social cycles
+
+
+# ------------------------------------------------------------------------------------------------
+# 3, 5. Every strategy and ablation runs from the command line; the logged social share
+# ------------------------------------------------------------------------------------------------
+TINY = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "3", "--n-segments", "4", "--n-updates", "2",
+        "--batch-size", "16", "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1",
+        "--threads", "1"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--sp-ratio", "0.5", "--strategy", "frontier-and-beyond"],
+        ["--sp-ratio", "0.5", "--strategy", "frontier"],
+        ["--sp-ratio", "0.5", "--strategy", "beyond"],
+        ["--sp-ratio", "0.5", "--internalization-prob", "0"],  # NI
+        ["--sp-ratio", "0.5", "--max-path-len", "2"],  # NG
+        ["--sp-ratio", "1"],  # SP-100%
+    ],
+    ids=["frontier-and-beyond", "frontier", "beyond", "NI", "NG", "SP-100"],
+)
+def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
+    cmd = [sys.executable, "gangstr_hme.py", *flags, *TINY, "--runs-dir", str(tmp_path)]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = tmp_path.iterdir()
+    (row,) = csv.DictReader((run_dir / "progress.csv").open())
+    for column in ("stepping_stones", "internalization_size", "social_share", "sp_frontier_C1", "sp_beyond_S2"):
+        assert column in row
+    if "--internalization-prob" in flags:
+        assert float(row["rehearsal_share"]) == 0.0
+
+
+def test_logged_social_share_matches_sp_ratio(tmp_path):
+    flags = ["--sp-ratio", "0.25", "--n-cycles", "400", "--n-segments", "1", "--segment-len", "2",
+             "--stable-steps", "1", "--n-updates", "0", "--n-epochs", "1", "--n-blocks", "3",
+             "--eval-goals-per-class", "0", "--threads", "1"]  # fmt: skip
+    out = subprocess.run([sys.executable, "gangstr_hme.py", *flags, "--runs-dir", str(tmp_path)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = tmp_path.iterdir()
+    (row,) = csv.DictReader((run_dir / "progress.csv").open())
+    assert abs(float(row["social_share"]) - 0.25) < 4 * np.sqrt(0.25 * 0.75 / 400)
