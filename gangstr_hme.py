@@ -456,10 +456,13 @@ class SemanticGraph:
             return
         for m in dict.fromkeys(og.permute_masks(mask, self.n).tolist()):
             if m not in self.node_of:
-                self.node_of[m] = len(self.masks)
-                self.masks.append(m)
-                self.succ.append([])
-                self.succ_class.append([])
+                self._add_node(m)
+
+    def _add_node(self, mask: int):
+        self.node_of[mask] = len(self.masks)
+        self.masks.append(mask)
+        self.succ.append([])
+        self.succ_class.append([])
         self._cache.clear()
 
     def edge_class(self, s: int, f: int) -> int:
@@ -617,10 +620,7 @@ class SemanticGraph:
     def load_state_dict(self, state: dict):
         self.__init__(self.n, self.args)
         for m in state["masks"].tolist():
-            self.node_of[m] = len(self.masks)
-            self.masks.append(m)
-            self.succ.append([])
-            self.succ_class.append([])
+            self._add_node(m)
         for u, v, c in state["edges"].tolist():
             self._add_edge(u, v, c)
         self.class_of_key = dict(map(tuple, state["class_keys"].tolist()))
@@ -1083,7 +1083,7 @@ def main(argv=None):
                 info.update(learner.train())
                 times["update"] += time.perf_counter() - t
                 learner.cycle += 1
-                if learner.cycle % max(1, args.n_cycles // 10) == 0 or learner.cycle == args.n_cycles:
+                if learner.cycle == 1 or learner.cycle % max(1, args.n_cycles // 10) == 0:
                     progress(
                         f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
                         f"nodes {learner.graph.n_nodes:,} | critic loss {info.get('critic_loss', 0):.3f}"

@@ -82,10 +82,7 @@ def synthetic_graph(n_nodes=13_000, degree=23, window=1_000, seed=0):
     rng = np.random.default_rng(seed)
     g = gh.SemanticGraph(3, gh.Args(n_blocks=3))
     for i in range(n_nodes):
-        g.node_of[i] = i
-        g.masks.append(i)
-        g.succ.append([])
-        g.succ_class.append([])
+        g._add_node(i)  # plain ids as configs
     offsets = rng.integers(-window, window + 1, size=(n_nodes, degree))
     targets = (np.arange(n_nodes)[:, None] + offsets) % n_nodes
     n_classes = n_nodes * degree // 120  # one SR per class of permutation-equivalent edges

@@ -270,10 +270,7 @@ def random_graph(n_nodes, p, seed):
     rng = np.random.default_rng(seed)
     g = gh.SemanticGraph(3, gh.Args(n_blocks=3))
     for i in range(n_nodes):
-        g.node_of[i] = i
-        g.masks.append(i)
-        g.succ.append([])
-        g.succ_class.append([])
+        g._add_node(i)  # plain ids as configs
     for u, v in itertools.permutations(range(n_nodes), 2):
         if rng.random() < p:
             g._add_edge(u, v, len(g.sr))
