@@ -741,11 +741,33 @@ class Learner:
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
         self.plan_seconds = 0.0  # planning + graph updates, for the speed report
-        self.sp = SocialPartner(args.n_blocks)
-        self.internalization_buffer: list[tuple[int, int]] = []  # failed (frontier, beyond) proposals
-        self.stats = collections.Counter()  # per-epoch counts: cycles of each kind, SP proposals
+        self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler
+        self.init_goal_sampler()
 
-    # --- goal samplers: autotelic, social (HME) and rehearsal ------------------------------------
+    # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
+    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool):
+        """Plan from the current config to goal on the semantic graph and follow the path."""
+        t = time.perf_counter()
+        path = self.graph.plan(current_config(self.env), goal, self.rng, explore)
+        self.plan_seconds += time.perf_counter() - t
+        return follow_path(self.env, self.agent, path, budget, self.args, deterministic)
+
+    def autotelic_cycle(self, budget: int) -> list[Segment]:
+        """Long-term goals until `budget` segments are spent; reset the env after each (SPEC §6)."""
+        segments = []
+        while len(segments) < budget:
+            self.env.reset()
+            goal = self.autotelic_goal()
+            segs, reached = self.pursue(goal, budget - len(segments), True, False)
+            segments += segs
+            self.goal_outcome(goal, reached)
+        return segments
+
+    # --- the goal sampler: HME (SPEC §7) -----------------------------------------------------------
+    def init_goal_sampler(self):
+        self.sp = SocialPartner(self.args.n_blocks)
+        self.internalization_buffer: list[tuple[int, int]] = []  # failed (frontier, beyond) proposals
+
     def run_cycle(self) -> list[Segment]:
         """One cycle's segments (SPEC §7): social with probability sp_ratio; otherwise a rehearsal of
         failed social proposals with probability internalization_prob (if any), else autotelic."""
@@ -765,28 +787,16 @@ class Learner:
             return int(og.to_mask(self.rng.choice([-1.0, 1.0], size=self.env.goal_dim)))
         return node
 
-    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool):
-        """Plan from the current config to goal on the semantic graph and follow the path."""
-        t = time.perf_counter()
-        path = self.graph.plan(current_config(self.env), goal, self.rng, explore)
-        self.plan_seconds += time.perf_counter() - t
-        return follow_path(self.env, self.agent, path, budget, self.args, deterministic)
+    def goal_outcome(self, goal: int, reached: bool):
+        self.goals += 1
+        self.stats["autotelic_goals"] += 1
+        self.stats["autotelic_reached"] += reached
 
     def go_to_frontier(self, frontier: int, budget: int):
         """Deterministic policy along the safest path (SPEC §7); already there counts as arrived."""
         if current_config(self.env) == frontier:
             return [], True
         return self.pursue(frontier, budget, explore=False, deterministic=True)
-
-    def autotelic_cycle(self, budget: int) -> list[Segment]:
-        """Long-term goals from the agent's own graph until `budget` segments are spent; reset the env
-        after each long-term goal (SPEC §6)."""
-        segments = []
-        while len(segments) < budget:
-            self.env.reset()
-            self.goals += 1
-            segments += self.pursue(self.autotelic_goal(), budget - len(segments), True, False)[0]
-        return segments
 
     def social_cycle(self) -> list[Segment]:
         """Reset; the social partner proposes a frontier goal and the agent goes there; then goals just
@@ -863,6 +873,27 @@ class Learner:
         name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
         self.stats[f"sp_{kind}_{name or 'other'}"] += 1
 
+    def sampler_stats(self) -> dict:
+        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the
+        internalization buffer, and the partner's proposals per class (frontier and beyond)."""
+        st, cycles = self.stats, max(1, self.stats["cycles"])
+        names = [*self.classes, "other"]
+        return dict(
+            autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]),
+            social_share=st["social_cycles"] / cycles,
+            rehearsal_share=st["rehearsal_cycles"] / cycles,
+            stepping_stones=len(self.sp.stepping_stones(self.graph)),
+            internalization_size=len(self.internalization_buffer),
+            **{f"sp_frontier_{k}": st[f"sp_frontier_{k}"] for k in names},
+            **{f"sp_beyond_{k}": st[f"sp_beyond_{k}"] for k in names},
+        )
+
+    def sampler_state(self) -> dict:
+        return dict(internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2))
+
+    def load_sampler_state(self, s: dict):
+        self.internalization_buffer = [tuple(p) for p in s["internalization"].tolist()]
+
     # --- learning -------------------------------------------------------------------------------
     def learn_from(self, segments: list[Segment]):
         """Store the cycle's segments, update the normalizer and the semantic graph."""
@@ -906,20 +937,6 @@ class Learner:
         sr["global"] = float(np.mean([sr[k] for k in self.classes]))
         return sr
 
-    def hme_stats(self) -> dict:
-        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the
-        internalization buffer, and the partner's proposals per class (frontier and beyond)."""
-        st, cycles = self.stats, max(1, self.stats["cycles"])
-        names = [*self.classes, "other"]
-        return dict(
-            social_share=st["social_cycles"] / cycles,
-            rehearsal_share=st["rehearsal_cycles"] / cycles,
-            stepping_stones=len(self.sp.stepping_stones(self.graph)),
-            internalization_size=len(self.internalization_buffer),
-            **{f"sp_frontier_{k}": st[f"sp_frontier_{k}"] for k in names},
-            **{f"sp_beyond_{k}": st[f"sp_beyond_{k}"] for k in names},
-        )
-
     def encounters(self) -> dict[str, int]:
         """Distinct configs of each class met so far."""
         met = np.array(sorted(self.encountered), dtype=np.int64)
@@ -943,7 +960,7 @@ class Learner:
             ),
             graph=self.graph.state_dict(),
             encountered=torch.tensor(sorted(self.encountered), dtype=torch.int64),
-            internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
+            **self.sampler_state(),
             rng=json.dumps(self.rng.bit_generator.state),
             env_rng=json.dumps(self.env.np_random.bit_generator.state),
             torch_rng=torch.get_rng_state(),
@@ -975,7 +992,7 @@ class Learner:
         ag.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
         self.graph.load_state_dict(s["graph"])
         self.encountered = set(s["encountered"].tolist())
-        self.internalization_buffer = [tuple(p) for p in s["internalization"].tolist()]
+        self.load_sampler_state(s)
         self.rng.bit_generator.state = json.loads(s["rng"])
         self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
         torch.set_rng_state(s["torch_rng"])
@@ -1102,7 +1119,7 @@ def main(argv=None):
                 train_success=float(np.mean(reached)) if reached else 0.0,
                 **{f"sr_{k}": sr[k] for k in learner.classes},
                 **{f"encounters_{k}": v for k, v in learner.encounters().items()},
-                **learner.hme_stats(),
+                **learner.sampler_stats(),
                 agent_nodes=learner.graph.n_nodes,
                 agent_edges=learner.graph.n_edges,
                 sr_classes=len(learner.graph.sr),
