@@ -140,9 +140,6 @@ def parse_args(argv=None) -> Args:
     return args
 
 
-STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
-
-
 def check_args(a: Args) -> str | None:
     """The first bad value in a, described, or None."""
     for name in ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size"):
@@ -151,9 +148,7 @@ def check_args(a: Args) -> str | None:
     for name in ("n_updates", "her_k", "eval_goals_per_class", "threads", "k_shortest", "stable_steps"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
-    if a.strategy not in STRATEGIES:
-        return f"--strategy must be one of {', '.join(STRATEGIES)}, got {a.strategy!r}"
-    for name in ("sp_ratio", "internalization_prob", "shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
+    for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
@@ -166,6 +161,19 @@ def check_args(a: Args) -> str | None:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
     if a.resume and not os.access(a.resume, os.R_OK):
         return f"--resume: cannot read checkpoint {a.resume!r}"
+    return check_sampler_args(a)
+
+
+STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
+
+
+def check_sampler_args(a: Args) -> str | None:
+    """The goal sampler's options (HME, SPEC §7)."""
+    if a.strategy not in STRATEGIES:
+        return f"--strategy must be one of {', '.join(STRATEGIES)}, got {a.strategy!r}"
+    for name in ("sp_ratio", "internalization_prob"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
     return None
 
 
@@ -378,6 +386,7 @@ class SAC:
             tmsg2 = self.critic_target.messages(gi, blocks2, batch["ag_next"], batch["g"])
             q_next = torch.min(*self.critic_target.q(body2, blocks2, a2, tmsg2))
             target = batch["reward"] + a.gamma * (q_next - a.alpha * logp2)  # no terminal masking
+            self.last_target = target
         msg = self.critic.messages(gi, blocks, batch["ag"], batch["g"])
         q1, q2 = self.critic.q(body, blocks, batch["action"], msg)
         critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
@@ -394,6 +403,7 @@ class SAC:
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
         critic_loss, actor_loss, info = self.losses(batch)
+        self.last_batch = batch  # kept for goal samplers that learn from the critic's TD targets (VDS)
         self.critic_opt.zero_grad()
         critic_loss.backward()
         # The actor loss updates actor parameters only: its gradient flows through the critic's Q heads

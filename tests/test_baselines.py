@@ -1,0 +1,189 @@
+"""lp_baseline.py and vds_baseline.py: the same learner as gangstr_hme.py with another goal sampler
+(SPEC §8): the LP arithmetic, the VDS scoring, and that nothing but the goal sampler differs."""
+
+import csv
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import lp_baseline as lp
+import oracle_graph as og
+import vds_baseline as vds
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "4", "--n-updates", "2", "--batch-size", "16",
+        "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Smoke
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
+@pytest.mark.parametrize("n_blocks", [3, 5])
+def test_baseline_runs_end_to_end(tmp_path, script, n_blocks):
+    cmd = [sys.executable, script, "--n-blocks", str(n_blocks), *TINY, "--runs-dir", str(tmp_path)]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = tmp_path.iterdir()
+    assert run_dir.name.startswith(script.removesuffix(".py"))
+    (row,) = csv.DictReader((run_dir / "progress.csv").open())
+    assert "global_sr" in row and (run_dir / "checkpoint.pt").exists()
+    assert ("lp_prob_C1" in row) if script.startswith("lp") else ("vds_disagreement" in row and "vds_loss" in row)
+    assert "sp_frontier_C1" not in row and "social_share" not in row
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Only the goal sampler differs
+# ------------------------------------------------------------------------------------------------
+BANNER = "# " + "-" * 96 + "\n"
+
+
+def without_goal_sampler(text: str) -> str:
+    """The file minus its goal sampler: module docstring, the sampler's Args fields and checks, its
+    classes, the Learner's sampler block, and the sampler-specific lines of training and logging."""
+    text = text[text.index("from __future__") :]
+    text = re.sub(r'exp_name: str = "\w+"', "", text)
+    text = re.sub(r"(?s)(n_blocks: int = 5\n.*?\n)(.*?)(    n_epochs: int)", r"\1\3", text)
+    text = re.sub(r"(?s)STRATEGIES = .*?\n\n\n", "", text)
+    text = re.sub(r"(?s)def check_sampler_args.*?(?=" + re.escape(BANNER) + ")", "", text)
+    sampler_section = r"# (HME: the social partner|The goal sampler).*?(?=" + re.escape(BANNER) + "# Rollouts)"
+    text = re.sub(r"(?s)" + re.escape(BANNER) + sampler_section, "", text)
+    text = re.sub(r"(?s)    # --- the goal sampler.*?(?=    # --- learning)", "", text)
+    text = re.sub(r'.*info\["vds_loss"\].*\n', "", text)
+    return re.sub(r'.*print\(f"run folder.*\n', "", text)
+
+
+@pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
+def test_a_baseline_differs_from_gangstr_hme_only_in_its_goal_sampler(script):
+    reference = without_goal_sampler((ROOT / "gangstr_hme.py").read_text())
+    assert "class SocialPartner" not in reference and "def social_cycle" not in reference
+    assert without_goal_sampler((ROOT / script).read_text()) == reference
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. LP arithmetic
+# ------------------------------------------------------------------------------------------------
+def test_lp_is_the_gap_between_the_newer_and_the_older_half_of_the_window():
+    tracker = lp.LearningProgress(3, window=200, min_outcomes=20, uniform_prob=0.1)
+    for _ in range(30):
+        tracker.record(0, False)
+    for _ in range(30):
+        tracker.record(0, True)  # 0 0 ... 0 1 1 ... 1: halves 0 and 1
+    for reached in [True, False] * 10:
+        tracker.record(1, reached)  # halves of 10 with 5 successes each: no progress
+    np.testing.assert_allclose(tracker.progress(), [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(tracker.competence()[:2], [0.5, 0.5])
+    assert np.isnan(tracker.competence()[2])
+
+
+def test_lp_needs_20_outcomes_and_keeps_only_the_last_200():
+    tracker = lp.LearningProgress(1, window=200, min_outcomes=20, uniform_prob=0.1)
+    for _ in range(19):
+        tracker.record(0, True)
+    assert tracker.progress()[0] == 0.0  # 19 outcomes: not yet
+    tracker.record(0, False)
+    assert tracker.progress()[0] == pytest.approx(abs(9 / 10 - 1.0))  # 20: halves of 10
+    for _ in range(300):
+        tracker.record(0, False)
+    for _ in range(100):
+        tracker.record(0, True)
+    assert len(tracker.outcomes[0]) == 200  # the window: the older half is the last 100 failures
+    assert tracker.progress()[0] == pytest.approx(1.0)
+
+
+def test_bucket_probabilities_mix_10_percent_uniform_with_lp_and_fall_back_to_uniform():
+    tracker = lp.LearningProgress(4, window=200, min_outcomes=20, uniform_prob=0.1)
+    nonempty = np.array([True, True, True, False])
+    np.testing.assert_allclose(tracker.probabilities(nonempty), [1 / 3, 1 / 3, 1 / 3, 0])  # all LP 0
+    for reached in [False] * 10 + [True] * 10:
+        tracker.record(0, reached)  # LP 1
+    for reached in [False] * 15 + [True] * 5 + [False] * 10 + [True] * 10:
+        tracker.record(1, reached)  # halves: 5/20 and 10/20, LP 0.25
+    for reached in [False] * 10 + [True] * 10:
+        tracker.record(3, reached)  # LP 1 but empty: never drawn
+    p = tracker.probabilities(nonempty)
+    np.testing.assert_allclose(p, 0.1 * np.array([1, 1, 1, 0]) / 3 + 0.9 * np.array([1.0, 0.25, 0, 0]) / 1.25)
+    assert p.sum() == pytest.approx(1.0)
+
+
+def test_lp_goals_come_from_discovered_configs_of_the_drawn_class():
+    learner = lp.Learner(lp.Args(n_blocks=3), torch.device("cpu"))
+    apart = int(og.to_mask(og.make_config(3)))
+    learner.graph.add_config(apart)
+    assert learner.autotelic_goal() == apart and learner.drawn_from is None  # no bucket yet: autotelic
+    c01 = int(og.to_mask(og.make_config(3, close=[(0, 1)])))
+    learner.graph.add_config(c01)  # the 3 configs of C1 are discovered
+    goals = {learner.autotelic_goal() for _ in range(50)}
+    assert goals == set(og.to_mask(og.evaluation_classes(3)["C1"]).tolist())
+    learner.goal_outcome(c01, True)
+    assert list(learner.lp.outcomes[0]) == [1.0] and learner.drawn_from == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. VDS scoring and learning
+# ------------------------------------------------------------------------------------------------
+def vds_learner(**kw):
+    learner = vds.Learner(vds.Args(n_blocks=3, **kw), torch.device("cpu"))
+    learner.agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    return learner
+
+
+def test_disagreement_is_the_std_of_the_heads_q_values_for_each_candidate():
+    learner = vds_learner()
+    candidates = og.to_mask(og.evaluation_classes(3)["S2"])
+    score = learner.disagreement(candidates)
+    obs = learner.env.set_goal(learner.env.goal)
+    with torch.no_grad():
+        for c, s in zip(candidates, score, strict=True):
+            o = torch.as_tensor(learner.agent.normalizer(obs["observation"])[None])
+            ag, g = torch.as_tensor(obs["achieved_goal"][None]), torch.as_tensor(og.from_mask(c, 3)[None])
+            body, blocks = vds.split_obs(o, 3)
+            a = torch.tanh(
+                learner.agent.actor(body, blocks, learner.agent.critic.messages(learner.agent.gi, blocks, ag, g))[0]
+            )
+            q = torch.stack([h(learner.readout(o, ag, g, a)) for h in learner.vds.heads]).squeeze()
+            assert s == pytest.approx(q.std().item(), rel=1e-4)  # fmt: skip
+    assert score.std() > 0  # goals differ
+
+
+@pytest.mark.parametrize("temperature", [1.0, 0.25])
+def test_goals_are_drawn_in_proportion_to_softmax_of_disagreement_over_temperature(monkeypatch, temperature):
+    learner = vds_learner(vds_temperature=temperature)
+    for c in og.to_mask(og.evaluation_classes(3)["C1"]):
+        learner.graph.add_config(int(c))
+    nodes = np.asarray(learner.graph.masks)
+    scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
+    monkeypatch.setattr(learner, "disagreement", lambda cand: np.array([scores[int(c)] for c in cand]))
+    draws = [learner.autotelic_goal() for _ in range(6000)]
+    freq = np.array([draws.count(m) for m in nodes]) / len(draws)
+    expected = vds.softmax(np.array([0.0, 0.5, 1.0]) / temperature)
+    np.testing.assert_allclose(freq, expected, atol=0.02)
+
+
+def test_at_most_1000_candidates_are_scored_all_from_the_agent_graph(monkeypatch):
+    learner = vds_learner()
+    learner.graph = vds.SemanticGraph(3, learner.args)
+    for i in range(2500):
+        learner.graph._add_node(i)  # plain ids as configs
+    seen = []
+    monkeypatch.setattr(learner, "disagreement", lambda cand: seen.append(cand) or np.zeros(len(cand)))
+    learner.autotelic_goal()
+    assert len(seen[0]) == 1000 and len(set(seen[0].tolist())) == 1000 and seen[0].max() < 2500
+
+
+def test_vds_heads_regress_the_critics_td_targets():
+    learner = vds_learner()
+    rng = np.random.default_rng(0)
+    from test_gangstr import filled_buffer  # noqa: PLC0415
+
+    buf = filled_buffer()
+    losses = []
+    for _ in range(60):
+        learner.agent.update(buf.sample(64, rng, 0.8, "final"))
+        losses.append(learner.train_vds())
+    assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])

@@ -1,0 +1,1081 @@
+# Docs: README.md, section "Baselines"; every number: SPEC §5, §6, §8-§12; paper Section 4.2.
+"""GANGSTR with a value-disagreement goal sampler (the paper's VDS baseline), in one file.
+
+The same learner as gangstr_hme.py (GNN SAC+HER, semantic graph, decomposition, evaluation, outputs);
+no social partner. An ensemble of 3 extra Q heads on the critic's node readout learns the critic's own
+TD targets; before each goal, candidates drawn from the agent's graph are scored by how much the heads
+disagree about them, and goals of high disagreement are preferred (SPEC §8; paper Section 4.2). A diff
+against gangstr_hme.py shows only the goal sampler, its options and its logging.
+
+    python vds_baseline.py                             # 5 blocks
+    python vds_baseline.py --n-blocks 3 --vds-temperature 0.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import collections
+import csv
+import dataclasses
+import heapq
+import inspect
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+import fetch5_env
+import oracle_graph as og
+
+
+@dataclass
+class Args:
+    exp_name: str = "vds_baseline"
+    """name of this experiment (the run folder is runs/{exp_name}__{seed}__{time})"""
+    seed: int = 0
+    """seed of numpy, torch and the environment"""
+    n_blocks: int = 5
+    """number of blocks (2-5; the paper uses 5)"""
+    vds_heads: int = 3
+    """extra Q heads whose disagreement scores goals"""
+    vds_candidates: int = 1000
+    """candidate goals drawn from the agent's graph before each goal"""
+    vds_temperature: float = 1.0
+    """softmax temperature on the disagreement scores (lower: greedier)"""
+    n_epochs: int = 100
+    """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
+    n_cycles: int = 50
+    """cycles per epoch"""
+    n_segments: int = 10
+    """40-step segments collected per cycle"""
+    n_updates: int = 30
+    """SAC updates per cycle"""
+    batch_size: int = 256
+    """transitions per SAC update"""
+    segment_len: int = 40
+    """environment steps per segment (one sub-goal)"""
+    buffer_size: int = 1_000_000
+    """replay capacity in transitions (FIFO)"""
+    her_strategy: str = "final"
+    """HER relabelling: 'final' (the segment's last achieved config, the paper's) or 'future'"""
+    her_k: int = 4
+    """HER ratio: a goal is relabelled with probability 1 - 1/(1 + k)"""
+    gamma: float = 0.99
+    """discount factor"""
+    alpha: float = 0.2
+    """SAC entropy coefficient (fixed)"""
+    polyak: float = 0.95
+    """target networks keep this share of their weights at each soft update"""
+    target_update_every: int = 2
+    """SAC updates between soft target updates"""
+    lr_actor: float = 1e-3
+    """actor learning rate (Adam)"""
+    lr_critic: float = 1e-3
+    """critic learning rate (Adam)"""
+    sr_ema: float = 0.01
+    """EMA rate of an edge's success-rate estimate"""
+    sr_prior: float = 0.5
+    """success rate given to a new edge"""
+    stable_steps: int = 10
+    """a segment updates the graph only if its final config held over this many last steps"""
+    k_shortest: int = 5
+    """number of shortest paths to pick from"""
+    shortest_ratio: float = 0.5
+    """probability of following one of the k shortest paths instead of the safest (training only)"""
+    max_path_len: int = 10
+    """longest path in configs, start included (2 = no decomposition, the 'NG' ablation)"""
+    eval_goals_per_class: int = 24
+    """evaluation goals per class"""
+    max_eval_subgoals: int = 9
+    """sub-goal segments an evaluation episode may use"""
+    threads: int = 0
+    """torch CPU threads (0: all cores)"""
+    cuda: bool = False
+    """train on the GPU if one is available"""
+    resume: str = ""
+    """checkpoint to resume from (its run folder is continued)"""
+    save_buffer: bool = True
+    """put the replay buffer in checkpoints (needed for an exact resume)"""
+    runs_dir: str = "runs"
+    """folder holding the run folders"""
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line: argparse built from Args, each field's docstring becoming its --help line
+# ------------------------------------------------------------------------------------------------
+def _field_docs(cls) -> dict[str, str]:
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {
+        a.target.id: b.value.value
+        for a, b in zip(body, body[1:], strict=False)
+        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
+    }
+
+
+def parse_args(argv=None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    docs = {k: v.replace("%", "%%") for k, v in _field_docs(Args).items()}  # argparse formats help with %
+    for f in dataclasses.fields(Args):
+        flag = "--" + f.name.replace("_", "-")
+        if f.type in ("bool", bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+        else:
+            kind = {"int": int, "float": float, "str": str}[f.type]
+            parser.add_argument(flag, type=kind, default=f.default, help=docs[f.name], metavar=kind.__name__.upper())
+    args = Args(**vars(parser.parse_args(argv)))
+    problem = check_args(args)
+    if problem:
+        parser.error(problem)  # exit code 2, the message names the value
+    return args
+
+
+def check_args(a: Args) -> str | None:
+    """The first bad value in a, described, or None."""
+    for name in ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size"):
+        if getattr(a, name) < 1:
+            return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
+    for name in ("n_updates", "her_k", "eval_goals_per_class", "threads", "k_shortest", "stable_steps"):
+        if getattr(a, name) < 0:
+            return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
+    for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
+    if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
+        return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
+    if a.her_strategy not in ("final", "future"):
+        return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
+    if a.max_path_len < 2 or a.max_eval_subgoals < 1 or a.target_update_every < 1:
+        return f"--max-path-len must be >= 2, --max-eval-subgoals and --target-update-every >= 1, got {a}"
+    if a.stable_steps > a.segment_len:
+        return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
+    if a.resume and not os.access(a.resume, os.R_OK):
+        return f"--resume: cannot read checkpoint {a.resume!r}"
+    return check_sampler_args(a)
+
+
+def check_sampler_args(a: Args) -> str | None:
+    """The goal sampler's options (VDS, SPEC §8)."""
+    if a.vds_heads < 2 or a.vds_candidates < 1:
+        return f"--vds-heads must be at least 2 and --vds-candidates at least 1, got {a.vds_heads}, {a.vds_candidates}"
+    if not a.vds_temperature > 0:
+        return f"--vds-temperature must be positive, got {a.vds_temperature}"
+    return None
+
+
+# ------------------------------------------------------------------------------------------------
+# The GNN actor-critic (SPEC §5; paper appendix "Object-centered architecture")
+# ------------------------------------------------------------------------------------------------
+BODY, PER_BLOCK, MSG = 10, 15, 24  # body features, features per block, message size
+
+
+def mlp(n_in: int, n_hidden: int, n_out: int, out_relu: bool = True) -> nn.Sequential:
+    layers = [nn.Linear(n_in, n_hidden), nn.ReLU(), nn.Linear(n_hidden, n_out)]
+    return nn.Sequential(*layers, nn.ReLU()) if out_relu else nn.Sequential(*layers)
+
+
+def init_weights(module: nn.Module):
+    """Xavier-uniform weights, zero biases (SPEC §5)."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.xavier_uniform_(m.weight)
+            nn.init.zeros_(m.bias)
+
+
+def node_readout(node: nn.Sequential, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """sum_i node([glob, local_i]) for a node net Linear -> ReLU -> Linear -> ReLU. The first layer's
+    columns for the graph-wide features (action, body) are applied once per graph, not once per node:
+    the same function, with fewer multiply-adds and no copies of glob for every node."""
+    first, second = node[0], node[2]
+    k = glob.shape[-1]
+    h = F.linear(local, first.weight[:, k:]) + F.linear(glob, first.weight[:, :k], first.bias)[:, None]
+    return F.relu(second(F.relu(h))).sum(1)
+
+
+class GraphIndex:
+    """Index tensors of the fully connected block graph: edge (i, j) for every ordered pair, ordered
+    by i, so that the n - 1 outgoing edges of node i are contiguous."""
+
+    def __init__(self, n_blocks: int, device):
+        src, dst = og.above_pairs(n_blocks).T
+        lookup = {(int(i), int(j)): k for k, (i, j) in enumerate(og.close_pairs(n_blocks))}
+        close = [lookup[min(i, j), max(i, j)] for i, j in zip(src, dst, strict=True)]
+        self.n = n_blocks
+        # Edge inputs are one gather from [g - ag (dim), positions (3n)]: for edge (i, j), the entries
+        # close{i,j} and "i on j" of g - ag, then the positions of i and j.
+        dim = og.config_dim(n_blocks)
+        above = np.arange(len(src)) + len(og.close_pairs(n_blocks))
+        pos = dim + 3 * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
+        index = np.column_stack([close, above, pos.reshape(len(src), 6)])  # (E, 8)
+        self.edge_index = torch.tensor(index.ravel(), device=device)
+
+
+def split_obs(obs: torch.Tensor, n: int):
+    """(B, 10 + 15n) -> body (B, 10), blocks (B, n, 15)."""
+    return obs[:, :BODY], obs[:, BODY:].reshape(len(obs), n, PER_BLOCK)
+
+
+class Critic(nn.Module):
+    """Twin Q heads over shared messages. The message net belongs to the critic (and learns from the
+    critic loss only); the actor reads the messages it computes."""
+
+    def __init__(self, n_blocks: int):
+        super().__init__()
+        self.message = mlp(8, 256, MSG)  # edge input: [g - ag at close{i,j}, at i on j, pos i, pos j]
+        self.q_nodes = nn.ModuleList([mlp(4 + BODY + PER_BLOCK + MSG, 256, 159) for _ in range(2)])
+        self.q_heads = nn.ModuleList([mlp(159, 256, 1, out_relu=False) for _ in range(2)])
+        init_weights(self)
+
+    def messages(self, gi: GraphIndex, blocks, ag, g) -> torch.Tensor:
+        """(B, n, 24): node i = max over its outgoing edges (i, j) of the edge messages."""
+        b = len(blocks)
+        features = torch.cat([g - ag, blocks[..., :3].reshape(b, -1)], dim=1)
+        m = self.message(features[:, gi.edge_index].reshape(b, -1, 8))  # (B, E, 8) -> (B, E, 24)
+        return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
+
+    def q(self, body, blocks, action, msg):
+        """Twin Q values; node input [action, body, block i, message i], summed over nodes."""
+        glob, local = torch.cat([action, body], dim=1), torch.cat([blocks, msg], dim=-1)
+        return [
+            head(node_readout(node, glob, local)).squeeze(-1)
+            for node, head in zip(self.q_nodes, self.q_heads, strict=True)
+        ]
+
+
+class Actor(nn.Module):
+    def __init__(self, n_blocks: int):
+        super().__init__()
+        self.node = mlp(BODY + PER_BLOCK + MSG, 256, 147)
+        self.head = nn.Sequential(nn.Linear(147, 256), nn.ReLU())
+        self.mean = nn.Linear(256, 4)
+        self.log_std = nn.Linear(256, 4)
+        init_weights(self)
+
+    def forward(self, body, blocks, msg):
+        """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
+        h = self.head(node_readout(self.node, body, torch.cat([blocks, msg], dim=-1)))
+        return self.mean(h), self.log_std(h).clamp(-20, 2)
+
+    def sample(self, body, blocks, msg):
+        """Squashed Gaussian action and its log-probability (with the tanh correction)."""
+        mean, log_std = self(body, blocks, msg)
+        noise = torch.randn_like(mean)
+        u = mean + log_std.exp() * noise  # reparameterised Gaussian sample
+        a = torch.tanh(u)
+        gauss_log_prob = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+        return a, (gauss_log_prob - torch.log(1 - a.pow(2) + 1e-6)).sum(-1)
+
+
+# ------------------------------------------------------------------------------------------------
+# Observation normalizer and HER replay (SPEC §5)
+# ------------------------------------------------------------------------------------------------
+class Normalizer:
+    """Running mean/std of raw observations clipped to +-5; std floored at 0.01; output clipped to +-5."""
+
+    def __init__(self, size: int, eps: float = 0.01, clip: float = 5.0):
+        self.eps, self.clip = eps, clip
+        self.sum, self.sumsq, self.count = np.zeros(size), np.zeros(size), 0
+        self.mean, self.std = np.zeros(size), np.ones(size)
+
+    def update(self, x: np.ndarray):
+        x = np.clip(x.reshape(-1, len(self.sum)), -self.clip, self.clip)
+        self.add(x.sum(0), (x * x).sum(0), len(x))
+
+    def add(self, s, ss, count):
+        self.sum += s
+        self.sumsq += ss
+        self.count += count
+        self.mean = self.sum / self.count
+        self.std = np.sqrt(np.maximum(self.eps**2, self.sumsq / self.count - self.mean**2))
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.clip(x, -self.clip, self.clip)
+        return np.clip((x - self.mean) / self.std, -self.clip, self.clip).astype(np.float32)
+
+
+class ReplayBuffer:
+    """Episode-major FIFO storage of segments; goals stored as int8 (+-1)."""
+
+    def __init__(self, n_segments: int, seg_len: int, obs_dim: int, goal_dim: int):
+        self.obs = np.zeros((n_segments, seg_len + 1, obs_dim), np.float32)
+        self.ag = np.zeros((n_segments, seg_len + 1, goal_dim), np.int8)
+        self.g = np.zeros((n_segments, goal_dim), np.int8)
+        self.actions = np.zeros((n_segments, seg_len, 4), np.float32)
+        self.ptr, self.size = 0, 0
+
+    def store(self, obs, ag, g, actions):
+        """Add a batch of segments: obs (S, T+1, .), ag (S, T+1, .), g (S, .), actions (S, T, 4)."""
+        idx = (self.ptr + np.arange(len(obs))) % len(self.obs)
+        self.obs[idx], self.ag[idx], self.g[idx], self.actions[idx] = obs, ag, g, actions
+        self.ptr = int((self.ptr + len(obs)) % len(self.obs))
+        self.size = min(self.size + len(obs), len(self.obs))
+
+    def sample(self, batch: int, rng: np.random.Generator, her_prob: float, strategy: str):
+        """Uniform segments and steps; the goal relabelled with probability her_prob; reward recomputed."""
+        seg_len = self.actions.shape[1]
+        ep = rng.integers(self.size, size=batch)
+        t = rng.integers(seg_len, size=batch)
+        g = self.g[ep].copy()
+        her = rng.random(batch) < her_prob
+        if strategy == "final":
+            future = np.full(batch, seg_len)
+        else:  # a later achieved config of the same segment, in [t + 1, T]
+            future = t + 1 + (rng.random(batch) * (seg_len - t)).astype(np.int64)
+        g[her] = self.ag[ep[her], future[her]]
+        ag_next = self.ag[ep, t + 1]
+        reward = (ag_next == g).all(1).astype(np.float32)
+        return dict(
+            obs=self.obs[ep, t],
+            obs_next=self.obs[ep, t + 1],
+            ag=self.ag[ep, t].astype(np.float32),
+            ag_next=ag_next.astype(np.float32),
+            g=g.astype(np.float32),
+            action=self.actions[ep, t],
+            reward=reward,
+        )
+
+
+# ------------------------------------------------------------------------------------------------
+# SAC (SPEC §5)
+# ------------------------------------------------------------------------------------------------
+class SAC:
+    def __init__(self, args: Args, obs_dim: int, device):
+        self.args, self.device = args, device
+        self.gi = GraphIndex(args.n_blocks, device)
+        self.actor = Actor(args.n_blocks).to(device)
+        self.critic = Critic(args.n_blocks).to(device)
+        self.critic_target = Critic(args.n_blocks).to(device)
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
+        self.normalizer = Normalizer(obs_dim)
+        self.n_updates = 0
+
+    @torch.inference_mode()
+    def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, deterministic: bool) -> np.ndarray:
+        o = torch.as_tensor(self.normalizer(obs)[None], device=self.device)
+        body, blocks = split_obs(o, self.gi.n)
+        ag, g = torch.as_tensor(ag[None], device=self.device), torch.as_tensor(g[None], device=self.device)
+        msg = self.critic.messages(self.gi, blocks, ag, g)
+        mean, log_std = self.actor(body, blocks, msg)
+        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # no log-prob needed
+        return torch.tanh(u)[0].cpu().numpy()
+
+    def losses(self, batch: dict):
+        """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors."""
+        a, gi = self.args, self.gi
+        body, blocks = split_obs(batch["obs"], gi.n)
+        body2, blocks2 = split_obs(batch["obs_next"], gi.n)
+        with torch.no_grad():
+            msg2 = self.critic.messages(gi, blocks2, batch["ag_next"], batch["g"])
+            a2, logp2 = self.actor.sample(body2, blocks2, msg2)
+            tmsg2 = self.critic_target.messages(gi, blocks2, batch["ag_next"], batch["g"])
+            q_next = torch.min(*self.critic_target.q(body2, blocks2, a2, tmsg2))
+            target = batch["reward"] + a.gamma * (q_next - a.alpha * logp2)  # no terminal masking
+            self.last_target = target
+        msg = self.critic.messages(gi, blocks, batch["ag"], batch["g"])
+        q1, q2 = self.critic.q(body, blocks, batch["action"], msg)
+        critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
+        # The actor reads detached messages: the message net learns from the critic loss only.
+        pi, logp = self.actor.sample(body, blocks, msg.detach())
+        q_pi = torch.min(*self.critic.q(body, blocks, pi, msg.detach()))
+        actor_loss = (a.alpha * logp - q_pi).mean()
+        return (
+            critic_loss,
+            actor_loss,
+            dict(q=q1.mean().item(), target=target.mean().item(), entropy=-logp.mean().item()),
+        )
+
+    def update(self, np_batch: dict) -> dict:
+        batch = self.to_tensors(np_batch)
+        critic_loss, actor_loss, info = self.losses(batch)
+        self.last_batch = batch  # kept for goal samplers that learn from the critic's TD targets (VDS)
+        self.critic_opt.zero_grad()
+        critic_loss.backward()
+        # The actor loss updates actor parameters only: its gradient flows through the critic's Q heads
+        # to the action, but lands on the actor's weights alone.
+        actor_params = list(self.actor.parameters())
+        for p, grad in zip(actor_params, torch.autograd.grad(actor_loss, actor_params), strict=True):
+            p.grad = grad
+        self.critic_opt.step()
+        self.actor_opt.step()
+        self.n_updates += 1
+        if self.n_updates % self.args.target_update_every == 0:
+            self.soft_update()
+        return dict(critic_loss=critic_loss.item(), actor_loss=actor_loss.item(), **info)
+
+    @torch.no_grad()
+    def soft_update(self):
+        for tp, p in zip(self.critic_target.parameters(), self.critic.parameters(), strict=True):
+            tp.mul_(self.args.polyak).add_(p, alpha=1 - self.args.polyak)
+
+    def to_tensors(self, b: dict) -> dict:
+        out = {k: torch.as_tensor(v, device=self.device) for k, v in b.items()}
+        out["obs"] = torch.as_tensor(self.normalizer(b["obs"]), device=self.device)
+        out["obs_next"] = torch.as_tensor(self.normalizer(b["obs_next"]), device=self.device)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+# The agent's semantic graph and goal decomposition (SPEC §6; paper Section 3.3, appendix)
+# ------------------------------------------------------------------------------------------------
+class SemanticGraph:
+    """Configs the agent has met (as int masks, see oracle_graph) linked by small steps it has made.
+
+    Every node comes with all its block permutations, and every edge with all its joint permutations;
+    equivalent edges share one success-rate estimate (the paper's "edge permutation bias"), keyed by
+    the canonical form of the ordered pair. Adjacency is kept as Python lists: the graph grows a little
+    after every cycle, and the path searches walk it node by node."""
+
+    def __init__(self, n_blocks: int, args: Args):
+        self.n, self.dim, self.args = n_blocks, og.config_dim(n_blocks), args
+        self.masks: list[int] = []  # node id -> config mask
+        self.node_of: dict[int, int] = {}  # config mask -> node id
+        self.succ: list[list[int]] = []  # node id -> successor node ids
+        self.succ_class: list[list[int]] = []  # ... and the SR class of each of those edges
+        self.edge_log: list[tuple[int, int, int]] = []  # (u, v, class) in creation order
+        self.class_of_key: dict[int, int] = {}  # canonical key of an ordered pair -> SR class
+        self.sr: list[float] = []  # SR class -> success-rate estimate
+        self._cache: dict = {}  # arrays derived from the edges (CSR, edge keys); cleared on any change
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.masks)
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.edge_log)
+
+    def add_config(self, mask: int):
+        """A config and all its block permutations become nodes."""
+        if mask in self.node_of:
+            return
+        for m in dict.fromkeys(og.permute_masks(mask, self.n).tolist()):
+            if m not in self.node_of:
+                self._add_node(m)
+
+    def _add_node(self, mask: int):
+        self.node_of[mask] = len(self.masks)
+        self.masks.append(mask)
+        self.succ.append([])
+        self.succ_class.append([])
+        self._cache.clear()
+
+    def edge_class(self, s: int, f: int) -> int:
+        """SR class of the edge s -> f, creating it with all its joint permutations if it is new."""
+        ps, pf = og.permute_masks(np.array([s, f]), self.n)
+        key = int(((ps << self.dim) | pf).min())  # canonical form of the ordered pair
+        c = self.class_of_key.get(key)
+        if c is None:
+            c = self.class_of_key[key] = len(self.sr)
+            self.sr.append(self.args.sr_prior)
+            for u, v in dict.fromkeys(zip(ps.tolist(), pf.tolist(), strict=True)):
+                self._add_edge(self.node_of[u], self.node_of[v], c)
+        return c
+
+    def _add_edge(self, u: int, v: int, c: int):
+        self.succ[u].append(v)
+        self.succ_class[u].append(c)
+        self.edge_log.append((u, v, c))
+        self._cache.clear()
+
+    def update(self, start: int, final: int, target: int, success: bool):
+        """Learn from one stable segment (SPEC §6): new nodes, a new edge for a new small step, and the
+        EMA of the success rate of start -> target when the target is a known node."""
+        self.add_config(start)
+        self.add_config(final)
+        if start != final and is_small_step(start, final, self.n):
+            self.edge_class(start, final)
+        if target in self.node_of and start != target and is_small_step(start, target, self.n):
+            c = self.edge_class(start, target)
+            self.sr[c] += self.args.sr_ema * (float(success) - self.sr[c])
+
+    def sample_node(self, rng: np.random.Generator) -> int | None:
+        return self.masks[rng.integers(self.n_nodes)] if self.masks else None
+
+    # --- path planning ------------------------------------------------------------------------
+    def safest_path(self, start: int, goal: int) -> list[int] | None:
+        """Path maximising the product of edge SRs: Dijkstra (binary heap, early exit) on -log SR."""
+        s, t = self.node_of.get(start), self.node_of.get(goal)
+        if s is None or t is None or s == t:
+            return None
+        cost = (-np.log(np.clip(self.sr, 1e-12, 1.0))).tolist()
+        dist, prev, heap = [math.inf] * self.n_nodes, [-1] * self.n_nodes, [(0.0, s)]
+        dist[s] = 0.0
+        succ, succ_class = self.succ, self.succ_class
+        while heap:
+            d, u = heapq.heappop(heap)
+            if u == t:
+                return [self.masks[i] for i in self._trace(prev, t)]
+            if d > dist[u]:
+                continue  # a stale heap entry
+            for v, c in zip(succ[u], succ_class[u]):  # noqa: B905 (equal lengths by construction; hot loop)
+                nd = d + cost[c]
+                if nd < dist[v]:
+                    dist[v], prev[v] = nd, u
+                    heapq.heappush(heap, (nd, v))
+        return None
+
+    def k_shortest_paths(self, start: int, goal: int, k: int) -> list[list[int]]:
+        """Up to k shortest loopless paths in number of edges: Yen's algorithm, each spur path found by
+        A* guided by the exact hop count to the goal in the whole graph (admissible when Yen removes
+        nodes and edges, so each search stays close to the shortest paths)."""
+        s, t = self.node_of.get(start), self.node_of.get(goal)
+        if s is None or t is None or s == t or k < 1:
+            return []
+        hops = og.bfs_hops(*self._csr(1), t).tolist()  # hop count to t along predecessor lists
+        first = self._astar(s, t, hops, set(), set())
+        if first is None:
+            return []
+        found, candidates, seen = [first], [], {tuple(first)}
+        while len(found) < k:
+            last = found[-1]
+            for i in range(len(last) - 1):
+                root = last[: i + 1]
+                banned_edges = {(p[i], p[i + 1]) for p in found if len(p) > i + 1 and p[: i + 1] == root}
+                spur = self._astar(last[i], t, hops, set(root[:-1]), banned_edges)
+                if spur is not None and tuple(root[:-1] + spur) not in seen:
+                    seen.add(tuple(root[:-1] + spur))
+                    heapq.heappush(candidates, (len(root) + len(spur), root[:-1] + spur))
+            if not candidates:
+                break
+            found.append(heapq.heappop(candidates)[1])
+        return [[self.masks[i] for i in p] for p in found]
+
+    def _astar(self, s: int, t: int, hops: list[int], banned_nodes: set, banned_edges: set) -> list[int] | None:
+        if hops[s] < 0:
+            return None
+        dist, prev, heap = {s: 0}, {s: -1}, [(hops[s], 0, s)]
+        while heap:
+            _, neg_d, u = heapq.heappop(heap)
+            if u == t:
+                return self._trace(prev, t)
+            if -neg_d > dist[u]:
+                continue
+            nd = 1 - neg_d
+            for v in self.succ[u]:
+                if hops[v] < 0 or v in banned_nodes or (u, v) in banned_edges or nd >= dist.get(v, math.inf):
+                    continue
+                dist[v], prev[v] = nd, u
+                heapq.heappush(heap, (nd + hops[v], -nd, v))  # ties: deepest first
+        return None
+
+    def _csr(self, by: int) -> tuple[np.ndarray, np.ndarray]:
+        """Edges grouped by their tail (by=0: successor lists) or head (by=1: predecessor lists), as CSR."""
+        if by not in self._cache:
+            edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
+            order = np.argsort(edges[:, by], kind="stable")
+            indptr = np.searchsorted(edges[order, by], np.arange(self.n_nodes + 1))
+            self._cache[by] = (indptr, edges[order, 1 - by])
+        return self._cache[by]
+
+    def reachable(self, start: int) -> np.ndarray:
+        """Masks of the nodes reachable from config `start` along agent edges, start included."""
+        s = self.node_of.get(start)
+        if s is None:
+            return np.array([start], dtype=np.int64)
+        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self._csr(0), s) >= 0]
+
+    def edge_keys(self) -> np.ndarray:
+        """Sorted int keys (mask_u << dim | mask_v) of the agent's edges, for set look-ups in numpy."""
+        if "keys" not in self._cache:
+            masks = np.asarray(self.masks, dtype=np.int64)
+            edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
+            self._cache["keys"] = np.sort((masks[edges[:, 0]] << self.dim) | masks[edges[:, 1]])
+        return self._cache["keys"]
+
+    @staticmethod
+    def _trace(prev, t: int) -> list[int]:
+        """Walk the predecessor map (a list or a dict, -1 at the start) back from t."""
+        path = [t]
+        while prev[path[-1]] >= 0:
+            path.append(prev[path[-1]])
+        return path[::-1]
+
+    def plan(self, start: int, goal: int, rng: np.random.Generator, explore: bool) -> list[int]:
+        """Sub-goal path [start, ..., goal] (SPEC §6). Training (explore) follows one of the k shortest
+        paths with probability shortest_ratio, else the safest; without a path: [start, goal]. A path
+        longer than max_path_len keeps its start and its last max_path_len - 1 configs."""
+        if explore and rng.random() < self.args.shortest_ratio:
+            paths = self.k_shortest_paths(start, goal, self.args.k_shortest)
+            path = paths[rng.integers(len(paths))] if paths else None
+        else:
+            path = self.safest_path(start, goal)
+        path = path or [start, goal]
+        cap = self.args.max_path_len
+        return path if len(path) <= cap else [path[0]] + path[-(cap - 1) :]
+
+    def state_dict(self) -> dict:
+        return dict(
+            masks=torch.tensor(self.masks, dtype=torch.int64),
+            edges=torch.tensor(self.edge_log, dtype=torch.int64).reshape(-1, 3),
+            class_keys=torch.tensor(list(self.class_of_key.items()), dtype=torch.int64).reshape(-1, 2),
+            sr=torch.tensor(self.sr, dtype=torch.float64),
+        )
+
+    def load_state_dict(self, state: dict):
+        self.__init__(self.n, self.args)
+        for m in state["masks"].tolist():
+            self._add_node(m)
+        for u, v, c in state["edges"].tolist():
+            self._add_edge(u, v, c)
+        self.class_of_key = dict(map(tuple, state["class_keys"].tolist()))
+        self.sr = state["sr"].tolist()
+
+
+def is_small_step(a: int, b: int, n: int) -> bool:
+    return bool(og.is_small_step(og.from_mask(a, n), og.from_mask(b, n)))
+
+
+# ------------------------------------------------------------------------------------------------
+# The goal sampler: value disagreement (SPEC §8; paper Section 4.2)
+# ------------------------------------------------------------------------------------------------
+class VDSEnsemble(nn.Module):
+    """Extra Q heads on the critic's node readout (its first Q head's node net, summed over nodes)."""
+
+    def __init__(self, n_heads: int):
+        super().__init__()
+        self.heads = nn.ModuleList([mlp(159, 256, 1, out_relu=False) for _ in range(n_heads)])
+        init_weights(self)
+
+    def forward(self, readout: torch.Tensor) -> torch.Tensor:
+        return torch.stack([h(readout).squeeze(-1) for h in self.heads])  # (heads, B)
+
+
+def softmax(x: np.ndarray) -> np.ndarray:
+    e = np.exp(x - x.max())
+    return e / e.sum()
+
+
+# ------------------------------------------------------------------------------------------------
+# Rollouts: segments, paths and cycles (SPEC §5, §6)
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class Segment:
+    obs: np.ndarray  # (T + 1, obs_dim) raw observations
+    ag: np.ndarray  # (T + 1, goal_dim) achieved configs
+    g: np.ndarray  # (goal_dim,) the sub-goal
+    actions: np.ndarray  # (T, 4)
+    success: bool  # ended exactly on g
+    stable: bool  # the final config held over the last stable_steps steps
+
+    @property
+    def start(self) -> int:
+        return int(og.to_mask(self.ag[0]))
+
+    @property
+    def final(self) -> int:
+        return int(og.to_mask(self.ag[-1]))
+
+
+def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bool) -> Segment:
+    """One segment toward `goal` from wherever the blocks are now (no reset: sub-goals chain)."""
+    obs = env.set_goal(goal)
+    T = args.segment_len
+    o = np.empty((T + 1, env.obs_dim), np.float32)
+    ag = np.empty((T + 1, env.goal_dim), np.float32)
+    actions = np.empty((T, 4), np.float32)
+    o[0], ag[0] = obs["observation"], obs["achieved_goal"]
+    for t in range(T):
+        actions[t] = agent.act(o[t], ag[t], goal, deterministic)
+        obs, *_ = env.step(actions[t])
+        o[t + 1], ag[t + 1] = obs["observation"], obs["achieved_goal"]
+    success = bool((ag[-1] == goal).all())
+    stable = bool((ag[T - args.stable_steps :] == ag[-1]).all())
+    return Segment(o, ag, goal.copy(), actions, success, stable)
+
+
+def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool):
+    """One segment per sub-goal of path[1:], moving on only while the sub-goal was reached exactly.
+    Returns the segments and whether the path's last config was reached."""
+    segments = []
+    for sub in path[1 : 1 + budget]:
+        segments.append(run_segment(env, agent, og.from_mask(sub, args.n_blocks), args, deterministic))
+        if not segments[-1].success:
+            break
+    return segments, len(segments) == len(path) - 1 and segments[-1].success
+
+
+def current_config(env) -> int:
+    return int(og.to_mask(env.set_goal(env.goal)["achieved_goal"]))
+
+
+class Learner:
+    """Everything a run carries: env, agent, semantic graph, replay, RNG and counters."""
+
+    def __init__(self, args: Args, device):
+        self.args = args
+        self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks)
+        self.env.reset(seed=args.seed)
+        self.agent = SAC(args, self.env.obs_dim, device)
+        self.graph = SemanticGraph(args.n_blocks, args)
+        seg_capacity = max(1, args.buffer_size // args.segment_len)
+        self.buffer = ReplayBuffer(seg_capacity, args.segment_len, self.env.obs_dim, self.env.goal_dim)
+        self.rng = np.random.default_rng(args.seed)
+        self.classes = og.evaluation_classes(args.n_blocks)
+        self.encountered: set[int] = set()  # every config met at any step of a training segment
+        self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
+        self.plan_seconds = 0.0  # planning + graph updates, for the speed report
+        self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler
+        self.init_goal_sampler()
+
+    # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
+    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool):
+        """Plan from the current config to goal on the semantic graph and follow the path."""
+        t = time.perf_counter()
+        path = self.graph.plan(current_config(self.env), goal, self.rng, explore)
+        self.plan_seconds += time.perf_counter() - t
+        return follow_path(self.env, self.agent, path, budget, self.args, deterministic)
+
+    def autotelic_cycle(self, budget: int) -> list[Segment]:
+        """Long-term goals until `budget` segments are spent; reset the env after each (SPEC §6)."""
+        segments = []
+        while len(segments) < budget:
+            self.env.reset()
+            goal = self.autotelic_goal()
+            segs, reached = self.pursue(goal, budget - len(segments), True, False)
+            segments += segs
+            self.goal_outcome(goal, reached)
+        return segments
+
+    # --- the goal sampler: value disagreement (SPEC §8) ---------------------------------------------
+    def init_goal_sampler(self):
+        self.vds = VDSEnsemble(self.args.vds_heads).to(self.agent.device)
+        self.vds_opt = torch.optim.Adam(self.vds.parameters(), lr=self.args.lr_critic)
+
+    def run_cycle(self) -> list[Segment]:
+        """Every cycle is autotelic; the value-disagreement sampler picks the goals."""
+        self.stats["cycles"] += 1
+        return self.autotelic_cycle(self.args.n_segments)
+
+    def readout(self, obs, ag, g, action) -> torch.Tensor:
+        """The critic's node readout at (obs, action) for goal g: the features the heads read."""
+        gi, critic = self.agent.gi, self.agent.critic
+        body, blocks = split_obs(obs, gi.n)
+        msg = critic.messages(gi, blocks, ag, g)
+        return node_readout(critic.q_nodes[0], torch.cat([action, body], 1), torch.cat([blocks, msg], -1))
+
+    @torch.no_grad()
+    def disagreement(self, candidates: np.ndarray) -> np.ndarray:
+        """Std over the heads of Q(s, pi(s, g), g) at the current observation, for each candidate g."""
+        obs = self.env.set_goal(self.env.goal)
+        c, dev, gi = len(candidates), self.agent.device, self.agent.gi
+        o = torch.as_tensor(np.repeat(self.agent.normalizer(obs["observation"])[None], c, 0), device=dev)
+        ag = torch.as_tensor(np.repeat(obs["achieved_goal"][None], c, 0), device=dev)
+        g = torch.as_tensor(og.from_mask(candidates, self.args.n_blocks), device=dev)
+        body, blocks = split_obs(o, gi.n)
+        action = torch.tanh(self.agent.actor(body, blocks, self.agent.critic.messages(gi, blocks, ag, g))[0])
+        return self.vds(self.readout(o, ag, g, action)).std(dim=0).cpu().numpy()
+
+    def autotelic_goal(self) -> int:
+        """Up to vds_candidates nodes drawn uniformly, one chosen with probability
+        softmax(disagreement / temperature); before any node exists, a random +-1 vector."""
+        a = self.args
+        if self.graph.n_nodes == 0:
+            return int(og.to_mask(self.rng.choice([-1.0, 1.0], size=self.env.goal_dim)))
+        nodes = np.asarray(self.graph.masks, dtype=np.int64)
+        candidates = nodes if len(nodes) <= a.vds_candidates else self.rng.choice(nodes, a.vds_candidates, False)
+        score = self.disagreement(candidates)
+        self.stats["vds_scored"] += 1
+        self.stats["vds_disagreement"] += float(score.mean())
+        self.stats["vds_spread"] += float(score.max() - score.min())
+        return int(candidates[self.rng.choice(len(candidates), p=softmax(score / a.vds_temperature))])
+
+    def goal_outcome(self, goal: int, reached: bool):
+        self.goals += 1
+        self.stats["autotelic_goals"] += 1
+        self.stats["autotelic_reached"] += reached
+
+    def train_vds(self) -> float:
+        """The heads regress the TD target of the critic update just made (SPEC §8)."""
+        b = self.agent.last_batch
+        with torch.no_grad():
+            features = self.readout(b["obs"], b["ag"], b["g"], b["action"])
+        loss = ((self.vds(features) - self.agent.last_target[None]) ** 2).mean(1).sum()
+        self.vds_opt.zero_grad()
+        loss.backward()
+        self.vds_opt.step()
+        return loss.item()
+
+    def sampler_stats(self) -> dict:
+        """Per-epoch VDS numbers: mean disagreement of the scored candidates and its spread."""
+        st, scored = self.stats, max(1, self.stats["vds_scored"])
+        return dict(
+            autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]),
+            vds_disagreement=st["vds_disagreement"] / scored,
+            vds_spread=st["vds_spread"] / scored,
+        )
+
+    def sampler_state(self) -> dict:
+        return dict(vds=self.vds.state_dict(), vds_opt=self.vds_opt.state_dict())
+
+    def load_sampler_state(self, s: dict):
+        self.vds.load_state_dict(s["vds"])
+        self.vds_opt.load_state_dict(s["vds_opt"])
+
+    # --- learning -------------------------------------------------------------------------------
+    def learn_from(self, segments: list[Segment]):
+        """Store the cycle's segments, update the normalizer and the semantic graph."""
+        obs = np.stack([s.obs for s in segments])
+        self.buffer.store(
+            obs,
+            np.stack([s.ag for s in segments]),
+            np.stack([s.g for s in segments]),
+            np.stack([s.actions for s in segments]),
+        )
+        self.agent.normalizer.update(obs)
+        t = time.perf_counter()
+        for s in segments:
+            self.encountered.update(np.unique(og.to_mask(s.ag)).tolist())
+            if s.stable:
+                self.graph.update(s.start, s.final, int(og.to_mask(s.g)), s.success)
+        self.plan_seconds += time.perf_counter() - t
+        self.segments += len(segments)
+
+    def train(self) -> dict:
+        a, info = self.args, {}
+        her_prob = 1 - 1 / (1 + a.her_k)
+        for _ in range(a.n_updates if self.buffer.size else 0):
+            info = self.agent.update(self.buffer.sample(a.batch_size, self.rng, her_prob, a.her_strategy))
+            info["vds_loss"] = self.train_vds()
+        return info
+
+    # --- evaluation (SPEC §9) -------------------------------------------------------------------
+    def evaluate(self) -> dict[str, float]:
+        """Per class, goals drawn uniformly; reset, plan the safest path, follow it deterministically
+        with at most max_eval_subgoals segments; success = the last segment ends exactly on the goal.
+        Test segments are neither stored nor used to update the graph."""
+        a, sr = self.args, {}
+        for name, members in self.classes.items():
+            wins = 0
+            for goal in members[self.rng.integers(len(members), size=a.eval_goals_per_class)]:
+                self.env.reset()
+                path = self.graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
+                path = [path[0]] + path[1:][-a.max_eval_subgoals :]
+                wins += follow_path(self.env, self.agent, path, len(path) - 1, a, deterministic=True)[1]
+            sr[name] = wins / max(1, a.eval_goals_per_class)
+        sr["global"] = float(np.mean([sr[k] for k in self.classes]))
+        return sr
+
+    def encounters(self) -> dict[str, int]:
+        """Distinct configs of each class met so far."""
+        met = np.array(sorted(self.encountered), dtype=np.int64)
+        return {name: int(np.isin(og.to_mask(m), met).sum()) for name, m in self.classes.items()}
+
+    # --- checkpoints (SPEC §10) -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        ag = self.agent
+        state = dict(
+            args=dataclasses.asdict(self.args),
+            counters=dict(
+                epoch=self.epoch, cycle=self.cycle, segments=self.segments, goals=self.goals, n_updates=ag.n_updates
+            ),
+            actor=ag.actor.state_dict(),
+            critic=ag.critic.state_dict(),
+            critic_target=ag.critic_target.state_dict(),
+            actor_opt=ag.actor_opt.state_dict(),
+            critic_opt=ag.critic_opt.state_dict(),
+            normalizer=dict(
+                sum=torch.tensor(ag.normalizer.sum), sumsq=torch.tensor(ag.normalizer.sumsq), count=ag.normalizer.count
+            ),
+            graph=self.graph.state_dict(),
+            encountered=torch.tensor(sorted(self.encountered), dtype=torch.int64),
+            **self.sampler_state(),
+            rng=json.dumps(self.rng.bit_generator.state),
+            env_rng=json.dumps(self.env.np_random.bit_generator.state),
+            torch_rng=torch.get_rng_state(),
+        )
+        if self.args.save_buffer:
+            b, n = self.buffer, self.buffer.size
+            state["buffer"] = dict(
+                obs=torch.from_numpy(b.obs[:n]),
+                ag=torch.from_numpy(b.ag[:n]),
+                g=torch.from_numpy(b.g[:n]),
+                actions=torch.from_numpy(b.actions[:n]),
+                ptr=b.ptr,
+            )
+        return state
+
+    def load_state_dict(self, s: dict):
+        ag = self.agent
+        c = s["counters"]
+        self.epoch, self.cycle, self.segments, self.goals, ag.n_updates = (
+            c["epoch"],
+            c["cycle"],
+            c["segments"],
+            c["goals"],
+            c["n_updates"],
+        )
+        for name in ("actor", "critic", "critic_target", "actor_opt", "critic_opt"):
+            getattr(ag, name).load_state_dict(s[name])
+        ag.normalizer.sum[:], ag.normalizer.sumsq[:], ag.normalizer.count = 0.0, 0.0, 0
+        ag.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
+        self.graph.load_state_dict(s["graph"])
+        self.encountered = set(s["encountered"].tolist())
+        self.load_sampler_state(s)
+        self.rng.bit_generator.state = json.loads(s["rng"])
+        self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
+        torch.set_rng_state(s["torch_rng"])
+        if "buffer" in s:
+            b, n = self.buffer, len(s["buffer"]["obs"])
+            b.obs[:n], b.ag[:n], b.g[:n], b.actions[:n] = (
+                s["buffer"][k].numpy() for k in ("obs", "ag", "g", "actions")
+            )
+            b.size, b.ptr = n, s["buffer"]["ptr"]
+
+
+def save_checkpoint(learner: Learner, path: Path):
+    """Write then rename: an interrupted save never leaves a broken checkpoint."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(learner.state_dict(), tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str) -> dict:
+    """A checkpoint, or exit 2 with one line naming the file (never unpickles code: weights_only)."""
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+        Args(**state["args"])
+        return state
+    except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
+        reason = (str(e).strip().splitlines() or [""])[0]
+        print(f"error: --resume: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
+        sys.exit(2)
+
+
+# ------------------------------------------------------------------------------------------------
+# Outputs (SPEC §10)
+# ------------------------------------------------------------------------------------------------
+class Logger:
+    """progress.csv (one row per epoch) and TensorBoard scalars with the same names."""
+
+    def __init__(self, run_dir: Path):
+        from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (slow import, only when training)
+
+        self.path = run_dir / "progress.csv"
+        self.writer = SummaryWriter(str(run_dir))
+
+    def log(self, row: dict):
+        new = not self.path.exists()
+        with self.path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                w.writeheader()
+            w.writerow(row)
+        for k, v in row.items():
+            if k != "epoch":
+                self.writer.add_scalar(k, v, row["epoch"])
+        self.writer.flush()
+
+
+def progress(text: str, final: bool = False):
+    """A live status line on a terminal; every line in a log file."""
+    if sys.stdout.isatty():
+        print("\r" + text.ljust(100), end="\n" if final else "", flush=True)
+    else:
+        print(text, flush=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# Main loop
+# ------------------------------------------------------------------------------------------------
+def main(argv=None):
+    args = parse_args(argv)
+    checkpoint = None
+    if args.resume:
+        checkpoint = load_checkpoint(args.resume)
+        saved = Args(**checkpoint["args"])
+        args = dataclasses.replace(saved, n_epochs=args.n_epochs, resume=args.resume)  # the rest as saved
+        run_dir = Path(args.resume).resolve().parent
+    else:
+        run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(args), indent=2))
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+    learner = Learner(args, device)
+    if checkpoint is not None:
+        learner.load_state_dict(checkpoint)
+        print(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}")
+    logger = Logger(run_dir)
+    ckpt_path = run_dir / "checkpoint.pt"
+    print(f"run folder {run_dir} | {args.n_blocks} blocks | VDS goal sampler | device {device}", flush=True)
+
+    try:
+        while learner.epoch < args.n_epochs:
+            times, reached = dict(collect=0.0, update=0.0, eval=0.0), []
+            info = dict.fromkeys(("critic_loss", "actor_loss", "q", "target", "entropy"), math.nan)  # fixed columns
+            learner.stats.clear()
+            learner.plan_seconds = 0.0
+            epoch_start, steps_start = time.perf_counter(), learner.segments * args.segment_len
+            while learner.cycle < args.n_cycles:
+                t = time.perf_counter()
+                segments = learner.run_cycle()
+                learner.learn_from(segments)
+                reached += [s.success for s in segments]
+                times["collect"] += time.perf_counter() - t
+                t = time.perf_counter()
+                info.update(learner.train())
+                times["update"] += time.perf_counter() - t
+                learner.cycle += 1
+                if learner.cycle == 1 or learner.cycle % max(1, args.n_cycles // 10) == 0:
+                    progress(
+                        f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
+                        f"nodes {learner.graph.n_nodes:,} | critic loss {info.get('critic_loss', 0):.3f}"
+                    )
+            t = time.perf_counter()
+            sr = learner.evaluate()
+            times["eval"] = time.perf_counter() - t
+            steps = learner.segments * args.segment_len
+            elapsed = time.perf_counter() - epoch_start
+            row = dict(
+                epoch=learner.epoch,
+                goals=learner.goals,
+                segments=learner.segments,
+                env_steps=steps,
+                global_sr=sr["global"],
+                train_success=float(np.mean(reached)) if reached else 0.0,
+                **{f"sr_{k}": sr[k] for k in learner.classes},
+                **{f"encounters_{k}": v for k, v in learner.encounters().items()},
+                **learner.sampler_stats(),
+                agent_nodes=learner.graph.n_nodes,
+                agent_edges=learner.graph.n_edges,
+                sr_classes=len(learner.graph.sr),
+                **{k: v for k, v in info.items()},
+                time_collect=times["collect"],
+                time_update=times["update"],
+                time_eval=times["eval"],
+                time_plan_and_graph=learner.plan_seconds,
+                steps_per_second=(steps - steps_start) / elapsed,
+            )
+            learner.epoch, learner.cycle = learner.epoch + 1, 0
+            logger.log(row)
+            save_checkpoint(learner, ckpt_path)
+            per_class = " ".join(f"{k} {sr[k]:.2f}" for k in learner.classes)
+            progress(
+                f"epoch {row['epoch']:3d} | steps {steps:,} | SR {sr['global']:.3f} | {per_class} | "
+                f"{row['steps_per_second']:.0f} steps/s | {elapsed:.0f} s",
+                final=True,
+            )
+    except KeyboardInterrupt:
+        save_checkpoint(learner, ckpt_path)
+        print(
+            f"\ninterrupted: checkpoint saved to {ckpt_path} (epoch {learner.epoch}, cycle {learner.cycle}); "
+            f"continue with --resume {ckpt_path}"
+        )
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
