@@ -23,6 +23,7 @@ import inspect
 import json
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -1012,6 +1013,10 @@ def main(argv=None):
     ckpt_path = run_dir / "checkpoint.pt"
     print(f"run folder {run_dir} | {args.n_blocks} blocks | LP goal sampler | device {device}", flush=True)
 
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)  # a scheduler's stop saves a checkpoint, as Ctrl-C does
     try:
         while learner.epoch < args.n_epochs:
             times, reached = dict(collect=0.0, update=0.0, eval=0.0), []

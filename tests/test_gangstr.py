@@ -381,14 +381,15 @@ def test_resuming_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
         }
 
 
-def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_saves_a_checkpoint_that_resumes(tmp_path, sig):
     cmd = [sys.executable, "-u", "gangstr_hme.py", *RESUME, "--n-epochs", "100", "--runs-dir", str(tmp_path)]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     for line in proc.stdout:
         if "epoch   1" in line:  # training is under way
             break
     time.sleep(0.5)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     rest = proc.communicate(timeout=60)[0]
     assert proc.returncode == 130, rest
     (run_dir,) = tmp_path.iterdir()
