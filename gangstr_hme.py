@@ -925,11 +925,13 @@ class Learner:
         self.segments += len(segments)
 
     def train(self) -> dict:
-        a, info = self.args, {}
+        """The cycle's SAC updates; returns the mean of each loss and statistic over them."""
+        a, infos = self.args, []
         her_prob = 1 - 1 / (1 + a.her_k)
         for _ in range(a.n_updates if self.buffer.size else 0):
             info = self.agent.update(self.buffer.sample(a.batch_size, self.rng, her_prob, a.her_strategy))
-        return info
+            infos.append(info)
+        return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
     # --- evaluation (SPEC §9) -------------------------------------------------------------------
     def evaluate(self) -> dict[str, float]:

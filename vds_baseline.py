@@ -795,16 +795,19 @@ class Learner:
         self.stats["autotelic_goals"] += 1
         self.stats["autotelic_reached"] += reached
 
-    def train_vds(self) -> float:
-        """The heads regress the TD target of the critic update just made (SPEC §8)."""
-        b = self.agent.last_batch
+    def train_vds(self) -> dict:
+        """The heads regress the TD target of the critic update just made (SPEC §8). Returns their loss
+        and the share of the targets' variance they explain (1 - MSE / Var: scale-free as Q grows)."""
+        b, target = self.agent.last_batch, self.agent.last_target
         with torch.no_grad():
             features = self.readout(b["obs"], b["ag"], b["g"], b["action"])
-        loss = ((self.vds(features) - self.agent.last_target[None]) ** 2).mean(1).sum()
+        mse = ((self.vds(features) - target[None]) ** 2).mean(1)
+        loss = mse.sum()
         self.vds_opt.zero_grad()
         loss.backward()
         self.vds_opt.step()
-        return loss.item()
+        explained = 1 - mse.mean().item() / max(target.var().item(), 1e-12)
+        return dict(vds_loss=loss.item(), vds_explained=explained)
 
     def sampler_stats(self) -> dict:
         """Per-epoch VDS numbers: mean disagreement of the scored candidates and its spread."""
@@ -842,12 +845,14 @@ class Learner:
         self.segments += len(segments)
 
     def train(self) -> dict:
-        a, info = self.args, {}
+        """The cycle's SAC updates; returns the mean of each loss and statistic over them."""
+        a, infos = self.args, []
         her_prob = 1 - 1 / (1 + a.her_k)
         for _ in range(a.n_updates if self.buffer.size else 0):
             info = self.agent.update(self.buffer.sample(a.batch_size, self.rng, her_prob, a.her_strategy))
-            info["vds_loss"] = self.train_vds()
-        return info
+            info.update(self.train_vds())
+            infos.append(info)
+        return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
     # --- evaluation (SPEC §9) -------------------------------------------------------------------
     def evaluate(self) -> dict[str, float]:
