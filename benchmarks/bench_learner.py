@@ -131,7 +131,7 @@ def main():
     learner.plan_seconds = 0.0
     t0 = time.perf_counter()
     for _ in range(cfg.n_cycles):
-        learner.learn_from(learner.autotelic_cycle())
+        learner.learn_from(learner.run_cycle())
         learner.train()
     cycle_s = (time.perf_counter() - t0) / cfg.n_cycles
     share = learner.plan_seconds / cfg.n_cycles / cycle_s
