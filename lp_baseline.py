@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn as nn
 import torch.nn.functional as F
 
@@ -106,6 +107,14 @@ class Args:
     """checkpoint to resume from (its run folder is continued)"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
+    eval_only: bool = False
+    """evaluate the --checkpoint (SR per class, printed and saved beside it) and exit; no training"""
+    checkpoint: str = ""
+    """checkpoint to evaluate with --eval-only"""
+    capture_video: bool = False
+    """with --eval-only: write an mp4 per class of its first --video-episodes evaluation episodes"""
+    video_episodes: int = 3
+    """evaluation episodes per class filmed by --capture-video"""
     runs_dir: str = "runs"
     """folder holding the run folders"""
 
@@ -160,6 +169,10 @@ def check_args(a: Args) -> str | None:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
     if a.resume and not os.access(a.resume, os.R_OK):
         return f"--resume: cannot read checkpoint {a.resume!r}"
+    if a.eval_only and not os.access(a.checkpoint, os.R_OK):
+        return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
+    if a.video_episodes < 0:
+        return f"--video-episodes must be non-negative, got {a.video_episodes}"
     return check_sampler_args(a)
 
 
@@ -170,6 +183,73 @@ def check_sampler_args(a: Args) -> str | None:
     if not 0.0 <= a.lp_uniform_prob <= 1.0:
         return f"--lp-uniform-prob must be in [0, 1], got {a.lp_uniform_prob}"
     return None
+
+
+# ------------------------------------------------------------------------------------------------
+# Workers (SPEC §11): one process by default; under torchrun, N workers like the paper's MPI workers
+# ------------------------------------------------------------------------------------------------
+def init_workers(args: Args) -> torch.device:
+    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this worker's device."""
+    cuda = args.cuda and torch.cuda.is_available()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        if cuda:
+            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
+
+
+def rank() -> int:
+    return dist.get_rank() if dist.is_initialized() else 0
+
+
+def world() -> int:
+    return dist.get_world_size() if dist.is_initialized() else 1
+
+
+def _comm_device() -> torch.device:
+    return torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else torch.device("cpu")
+
+
+def all_sum(x: np.ndarray) -> np.ndarray:
+    """Element-wise sum over workers (float64)."""
+    if world() == 1:
+        return x
+    t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
+    dist.all_reduce(t)
+    return t.cpu().numpy()
+
+
+def all_gather_rows(rows: np.ndarray) -> np.ndarray:
+    """Every worker's int64 rows (any number each), concatenated in rank order: the same on every worker."""
+    rows = np.asarray(rows, dtype=np.int64)
+    if world() == 1:
+        return rows
+    dev = _comm_device()
+    counts = [torch.zeros(1, dtype=torch.int64, device=dev) for _ in range(world())]
+    dist.all_gather(counts, torch.tensor([len(rows)], device=dev))
+    counts = [int(c) for c in counts]
+    padded = torch.zeros((max(counts), *rows.shape[1:]), dtype=torch.int64, device=dev)
+    padded[: len(rows)] = torch.as_tensor(rows, device=dev)
+    parts = [torch.empty_like(padded) for _ in counts]
+    dist.all_gather(parts, padded)
+    return torch.cat([p[:c] for p, c in zip(parts, counts, strict=True)]).cpu().numpy()
+
+
+def broadcast_params(*modules: nn.Module):
+    """Every worker starts from worker 0's parameters."""
+    if world() > 1:
+        for t in (t for m in modules for t in m.state_dict().values()):
+            dist.broadcast(t, src=0)
+
+
+def sum_grads(params: list[torch.Tensor]):
+    """Gradients summed over workers (SPEC §11), in one all-reduce."""
+    if world() > 1:
+        grads = [p.grad for p in params]
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        dist.all_reduce(flat)
+        for g, synced in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
+            g.copy_(synced.view_as(g))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -288,7 +368,8 @@ class Normalizer:
 
     def update(self, x: np.ndarray):
         x = np.clip(x.reshape(-1, len(self.sum)), -self.clip, self.clip)
-        self.add(x.sum(0), (x * x).sum(0), len(x))
+        stats = all_sum(np.concatenate([x.sum(0), (x * x).sum(0), [len(x)]]))  # every worker's segments
+        self.add(stats[: len(self.sum)], stats[len(self.sum) : -1], int(stats[-1]))
 
     def add(self, s, ss, count):
         self.sum += s
@@ -354,6 +435,7 @@ class SAC:
         self.actor = Actor(args.n_blocks).to(device)
         self.critic = Critic(args.n_blocks).to(device)
         self.critic_target = Critic(args.n_blocks).to(device)
+        broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
@@ -406,6 +488,7 @@ class SAC:
         actor_params = list(self.actor.parameters())
         for p, grad in zip(actor_params, torch.autograd.grad(actor_loss, actor_params), strict=True):
             p.grad = grad
+        sum_grads(actor_params + list(self.critic.parameters()))
         self.critic_opt.step()
         self.actor_opt.step()
         self.n_updates += 1
@@ -692,8 +775,9 @@ class Segment:
         return int(og.to_mask(self.ag[-1]))
 
 
-def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bool) -> Segment:
-    """One segment toward `goal` from wherever the blocks are now (no reset: sub-goals chain)."""
+def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bool, frames=None) -> Segment:
+    """One segment toward `goal` from wherever the blocks are now (no reset: sub-goals chain).
+    `frames`, a list, receives a rendered image per step (videos)."""
     obs = env.set_goal(goal)
     T = args.segment_len
     o = np.empty((T + 1, env.obs_dim), np.float32)
@@ -704,17 +788,19 @@ def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bo
         actions[t] = agent.act(o[t], ag[t], goal, deterministic)
         obs, *_ = env.step(actions[t])
         o[t + 1], ag[t + 1] = obs["observation"], obs["achieved_goal"]
+        if frames is not None:
+            frames.append(env.render())
     success = bool((ag[-1] == goal).all())
     stable = bool((ag[T - args.stable_steps :] == ag[-1]).all())
     return Segment(o, ag, goal.copy(), actions, success, stable)
 
 
-def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool):
+def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool, frames=None):
     """One segment per sub-goal of path[1:], moving on only while the sub-goal was reached exactly.
     Returns the segments and whether the path's last config was reached."""
     segments = []
     for sub in path[1 : 1 + budget]:
-        segments.append(run_segment(env, agent, og.from_mask(sub, args.n_blocks), args, deterministic))
+        segments.append(run_segment(env, agent, og.from_mask(sub, args.n_blocks), args, deterministic, frames))
         if not segments[-1].success:
             break
     return segments, len(segments) == len(path) - 1 and segments[-1].success
@@ -728,14 +814,15 @@ class Learner:
     """Everything a run carries: env, agent, semantic graph, replay, RNG and counters."""
 
     def __init__(self, args: Args, device):
-        self.args = args
-        self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks)
-        self.env.reset(seed=args.seed)
+        self.args, seed = args, args.seed + rank()  # each worker its own seed (SPEC §11)
+        render_mode = "rgb_array" if args.capture_video else None
+        self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks, render_mode=render_mode)
+        self.env.reset(seed=seed)
         self.agent = SAC(args, self.env.obs_dim, device)
         self.graph = SemanticGraph(args.n_blocks, args)
         seg_capacity = max(1, args.buffer_size // args.segment_len)
         self.buffer = ReplayBuffer(seg_capacity, args.segment_len, self.env.obs_dim, self.env.goal_dim)
-        self.rng = np.random.default_rng(args.seed)
+        self.rng = np.random.default_rng(seed)
         self.classes = og.evaluation_classes(args.n_blocks)
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
@@ -768,11 +855,17 @@ class Learner:
         self.lp = LearningProgress(len(self.classes), a.lp_window, a.lp_min_outcomes, a.lp_uniform_prob)
         self.class_masks = [og.to_mask(members) for members in self.classes.values()]
         self.drawn_from = None
+        self.attempts: list[tuple[int, bool]] = []  # this cycle's (bucket, reached), not yet recorded
 
     def run_cycle(self) -> list[Segment]:
         """Every cycle is autotelic; the learning-progress sampler picks the goals."""
         self.stats["cycles"] += 1
-        return self.autotelic_cycle(self.args.n_segments)
+        segments = self.autotelic_cycle(self.args.n_segments)
+        # Every worker's outcomes, in rank order: all workers see the same learning progress (SPEC §11).
+        for bucket, reached in all_gather_rows(np.array(self.attempts, dtype=np.int64).reshape(-1, 2)).tolist():
+            self.lp.record(bucket, bool(reached))
+        self.attempts.clear()
+        return segments
 
     def buckets(self) -> list[np.ndarray]:
         """Per evaluation class, the configs of that class that are agent nodes (discovered)."""
@@ -800,11 +893,15 @@ class Learner:
         self.stats["autotelic_goals"] += 1
         self.stats["autotelic_reached"] += reached
         if self.drawn_from is not None:
-            self.lp.record(self.drawn_from, reached)
+            self.attempts.append((self.drawn_from, reached))
 
     def sampler_stats(self) -> dict:
         """Per-epoch LP numbers per bucket: learning progress, competence, probability, size."""
-        st, names, buckets = self.stats, list(self.classes), self.buckets()
+        st, names, buckets = (
+            self.summed_stats(["autotelic_goals", "autotelic_reached"]),
+            list(self.classes),
+            self.buckets(),
+        )
         nonempty = np.array([len(b) > 0 for b in buckets])
         prob = self.lp.probabilities(nonempty) if nonempty.any() else np.zeros(len(names))
         lp, competence = self.lp.progress(), self.lp.competence()
@@ -825,23 +922,26 @@ class Learner:
             o.extend(saved)
 
     # --- learning -------------------------------------------------------------------------------
+    def summed_stats(self, keys: list[str]) -> dict[str, float]:
+        """This epoch's goal-sampler counts, summed over workers."""
+        return dict(zip(keys, all_sum(np.array([self.stats[k] for k in keys], dtype=np.float64)), strict=True))
+
     def learn_from(self, segments: list[Segment]):
-        """Store the cycle's segments, update the normalizer and the semantic graph."""
+        """Store the cycle's segments, update the normalizer and the semantic graph. With several
+        workers, the normalizer and the graph learn from every worker's segments, in rank order, so
+        that the graphs stay identical (SPEC §11)."""
+        ag = np.stack([s.ag for s in segments])
         obs = np.stack([s.obs for s in segments])
-        self.buffer.store(
-            obs,
-            np.stack([s.ag for s in segments]),
-            np.stack([s.g for s in segments]),
-            np.stack([s.actions for s in segments]),
-        )
+        self.buffer.store(obs, ag, np.stack([s.g for s in segments]), np.stack([s.actions for s in segments]))
         self.agent.normalizer.update(obs)
         t = time.perf_counter()
-        for s in segments:
-            self.encountered.update(np.unique(og.to_mask(s.ag)).tolist())
-            if s.stable:
-                self.graph.update(s.start, s.final, int(og.to_mask(s.g)), s.success)
+        outcomes = all_gather_rows([(s.start, s.final, og.to_mask(s.g), s.success, s.stable) for s in segments])
+        for start, final, target, success, stable in outcomes.tolist():
+            if stable:
+                self.graph.update(start, final, target, bool(success))
+        self.encountered.update(all_gather_rows(np.unique(og.to_mask(ag))).tolist())
         self.plan_seconds += time.perf_counter() - t
-        self.segments += len(segments)
+        self.segments += len(outcomes)
 
     def train(self) -> dict:
         """The cycle's SAC updates; returns the mean of each loss and statistic over them."""
@@ -853,20 +953,23 @@ class Learner:
         return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
     # --- evaluation (SPEC §9) -------------------------------------------------------------------
-    def evaluate(self) -> dict[str, float]:
+    def evaluate(self, video: dict | None = None) -> dict[str, float]:
         """Per class, goals drawn uniformly; reset, plan the safest path, follow it deterministically
         with at most max_eval_subgoals segments; success = the last segment ends exactly on the goal.
-        Test segments are neither stored nor used to update the graph."""
-        a, sr = self.args, {}
-        for name, members in self.classes.items():
-            wins = 0
-            for goal in members[self.rng.integers(len(members), size=a.eval_goals_per_class)]:
+        Test segments are neither stored nor used to update the graph. Workers split the goals of each
+        class (SPEC §9). `video`, if given, receives the frames of each class's first video_episodes."""
+        a, wins = self.args, np.zeros(len(self.classes))
+        share = len(range(rank(), a.eval_goals_per_class, world()))  # this worker's goals per class
+        for k, (name, members) in enumerate(self.classes.items()):
+            for i, goal in enumerate(members[self.rng.integers(len(members), size=share)]):
                 self.env.reset()
+                frames = video.setdefault(name, []) if video is not None and i < a.video_episodes else None
                 path = self.graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
                 path = [path[0]] + path[1:][-a.max_eval_subgoals :]
-                wins += follow_path(self.env, self.agent, path, len(path) - 1, a, deterministic=True)[1]
-            sr[name] = wins / max(1, a.eval_goals_per_class)
-        sr["global"] = float(np.mean([sr[k] for k in self.classes]))
+                wins[k] += follow_path(self.env, self.agent, path, len(path) - 1, a, True, frames)[1]
+        rates = all_sum(wins) / max(1, a.eval_goals_per_class)
+        sr = dict(zip(self.classes, rates.tolist(), strict=True))
+        sr["global"] = float(np.mean(rates))
         return sr
 
     def encounters(self) -> dict[str, int]:
@@ -925,6 +1028,11 @@ class Learner:
         self.graph.load_state_dict(s["graph"])
         self.encountered = set(s["encountered"].tolist())
         self.load_sampler_state(s)
+        if rank() > 0:  # the checkpoint holds worker 0's random streams and replay: the others start anew
+            self.rng = np.random.default_rng([self.args.seed + rank(), self.epoch])
+            self.env.reset(seed=int(self.rng.integers(2**31)))
+            torch.manual_seed(self.args.seed + rank() + 1000 * self.epoch)
+            return
         self.rng.bit_generator.state = json.loads(s["rng"])
         self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
         torch.set_rng_state(s["torch_rng"])
@@ -943,7 +1051,7 @@ def save_checkpoint(learner: Learner, path: Path):
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str) -> dict:
+def load_checkpoint(path: str, flag: str = "--resume") -> dict:
     """A checkpoint, or exit 2 with one line naming the file (never unpickles code: weights_only)."""
     try:
         state = torch.load(path, weights_only=True, map_location="cpu")
@@ -951,7 +1059,7 @@ def load_checkpoint(path: str) -> dict:
         return state
     except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
         reason = (str(e).strip().splitlines() or [""])[0]
-        print(f"error: --resume: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
+        print(f"error: {flag}: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
         sys.exit(2)
 
 
@@ -981,39 +1089,100 @@ class Logger:
 
 
 def progress(text: str, final: bool = False):
-    """A live status line on a terminal; every line in a log file."""
+    """A live status line on a terminal; every line in a log file. Worker 0 speaks for all."""
+    if rank() > 0:
+        return
     if sys.stdout.isatty():
         print("\r" + text.ljust(100), end="\n" if final else "", flush=True)
     else:
         print(text, flush=True)
 
 
+def write_video(path: Path, frames: list[np.ndarray], fps: float):
+    """An H.264 mp4 through the ffmpeg binary that imageio-ffmpeg ships; written, then renamed."""
+    import imageio_ffmpeg  # noqa: PLC0415 (needed only for --capture-video)
+
+    tmp = path.with_name(path.stem + ".tmp.mp4")  # ffmpeg picks the container from the extension
+    height, width = frames[0].shape[:2]
+    writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, macro_block_size=1)
+    writer.send(None)  # start ffmpeg
+    for frame in frames:
+        writer.send(np.ascontiguousarray(frame))
+    writer.close()
+    os.replace(tmp, path)
+
+
+def evaluate_checkpoint(args: Args, device) -> int:
+    """--eval-only: the saved agent's SR per class (SPEC §9), printed and saved as JSON beside the
+    checkpoint; with --capture-video, an mp4 per class of its first evaluation episodes."""
+    state = load_checkpoint(args.checkpoint, "--checkpoint")
+    state.pop("buffer", None)  # evaluation needs no replay
+    keep = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "threads", "cuda")
+    saved = Args(**state["args"])
+    args = dataclasses.replace(saved, eval_only=True, checkpoint=args.checkpoint, resume="",
+                               buffer_size=saved.segment_len, **{k: getattr(args, k) for k in keep})  # fmt: skip
+    learner = Learner(args, device)
+    learner.load_state_dict(state)
+    learner.rng = np.random.default_rng(args.seed + rank())  # the evaluation's own seed, not the run's
+    learner.env.reset(seed=args.seed + rank())
+    video = {} if args.capture_video and rank() == 0 else None
+    t = time.perf_counter()
+    sr = learner.evaluate(video)
+    if rank() > 0:
+        return 0
+    out_dir = Path(args.checkpoint).resolve().parent
+    result = dict(checkpoint=str(Path(args.checkpoint).resolve()), epoch=learner.epoch, seed=args.seed,
+                  goals_per_class=args.eval_goals_per_class, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
+    out = out_dir / f"eval_epoch{learner.epoch}_seed{args.seed}.json"
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, out)
+    for name in learner.classes:
+        print(f"{name:>6}  SR {sr[name]:.3f}")
+    print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, epoch {learner.epoch})")
+    print(f"saved {out}")
+    for name, frames in (video or {}).items():
+        path = out_dir / "videos" / f"epoch{learner.epoch}_{name}.mp4"
+        path.parent.mkdir(exist_ok=True)
+        write_video(path, frames, fps=1 / learner.env.dt)
+        print(f"video {path} ({len(frames)} frames)")
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------
 # Main loop
 # ------------------------------------------------------------------------------------------------
 def main(argv=None):
-    args = parse_args(argv)
-    checkpoint = None
+    args, checkpoint = parse_args(argv), None
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         saved = Args(**checkpoint["args"])
         args = dataclasses.replace(saved, n_epochs=args.n_epochs, resume=args.resume)  # the rest as saved
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = init_workers(args)  # under torchrun: this worker's device, and the job joined
+    torch.manual_seed(args.seed + rank())
+    if args.eval_only:
+        return evaluate_checkpoint(args, device)
+    main_worker = rank() == 0  # worker 0 logs and saves checkpoints (SPEC §11)
+    if args.resume:
         run_dir = Path(args.resume).resolve().parent
     else:
         run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(args), indent=2))
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-    device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+        if main_worker:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            config = dict(dataclasses.asdict(args), workers=world())
+            (run_dir / "config.json").write_text(json.dumps(config, indent=2))
     learner = Learner(args, device)
     if checkpoint is not None:
         learner.load_state_dict(checkpoint)
-        print(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}")
-    logger = Logger(run_dir)
+        progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
+    logger = Logger(run_dir) if main_worker else None
     ckpt_path = run_dir / "checkpoint.pt"
-    print(f"run folder {run_dir} | {args.n_blocks} blocks | LP goal sampler | device {device}", flush=True)
+    progress(
+        f"run folder {run_dir} | {args.n_blocks} blocks | LP goal sampler | {world()} worker(s) on {device}",
+        final=True,
+    )
 
     def interrupt(signum, frame):
         raise KeyboardInterrupt
@@ -1044,15 +1213,16 @@ def main(argv=None):
             t = time.perf_counter()
             sr = learner.evaluate()
             times["eval"] = time.perf_counter() - t
-            steps = learner.segments * args.segment_len
+            steps = learner.segments * args.segment_len  # all workers'
             elapsed = time.perf_counter() - epoch_start
+            goals, wins, tries = all_sum(np.array([learner.goals, sum(reached), len(reached)], dtype=np.float64))
             row = dict(
                 epoch=learner.epoch,
-                goals=learner.goals,
+                goals=int(goals),
                 segments=learner.segments,
                 env_steps=steps,
                 global_sr=sr["global"],
-                train_success=float(np.mean(reached)) if reached else 0.0,
+                train_success=wins / max(1, tries),
                 **{f"sr_{k}": sr[k] for k in learner.classes},
                 **{f"encounters_{k}": v for k, v in learner.encounters().items()},
                 **learner.sampler_stats(),
@@ -1067,8 +1237,9 @@ def main(argv=None):
                 steps_per_second=(steps - steps_start) / elapsed,
             )
             learner.epoch, learner.cycle = learner.epoch + 1, 0
-            logger.log(row)
-            save_checkpoint(learner, ckpt_path)
+            if main_worker:
+                logger.log(row)
+                save_checkpoint(learner, ckpt_path)
             per_class = " ".join(f"{k} {sr[k]:.2f}" for k in learner.classes)
             progress(
                 f"epoch {row['epoch']:3d} | steps {steps:,} | SR {sr['global']:.3f} | {per_class} | "
@@ -1076,12 +1247,15 @@ def main(argv=None):
                 final=True,
             )
     except KeyboardInterrupt:
-        save_checkpoint(learner, ckpt_path)
-        print(
-            f"\ninterrupted: checkpoint saved to {ckpt_path} (epoch {learner.epoch}, cycle {learner.cycle}); "
-            f"continue with --resume {ckpt_path}"
-        )
+        if main_worker:
+            save_checkpoint(learner, ckpt_path)
+            print(
+                f"\ninterrupted: checkpoint saved to {ckpt_path} (epoch {learner.epoch}, cycle {learner.cycle}); "
+                f"continue with --resume {ckpt_path}"
+            )
         return 130
+    if dist.is_initialized():
+        dist.destroy_process_group()
     return 0
 
 

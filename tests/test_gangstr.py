@@ -3,7 +3,9 @@ the training loop, its outputs, resume and command line (SPEC §5, §6, §9, §1
 
 import csv
 import itertools
+import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -413,6 +415,8 @@ def test_ctrl_c_or_sigterm_saves_a_checkpoint_that_resumes(tmp_path, sig):
         (["--n-blocks", "6"], "6"),
         (["--resume", "/nonexistent/checkpoint.pt"], "/nonexistent/checkpoint.pt"),
         (["--batch-size", "many"], "'many'"),
+        (["--eval-only", "--checkpoint", "/nonexistent/run/checkpoint.pt"], "/nonexistent/run/checkpoint.pt"),
+        (["--video-episodes", "-2"], "-2"),
     ],
 )
 def test_bad_command_line_values_exit_2_naming_the_value(argv, named, capsys):
@@ -430,8 +434,44 @@ def test_an_unreadable_checkpoint_exits_2_with_one_line(tmp_path, content):
     assert out.returncode == 2 and str(bad) in out.stderr and len(out.stderr.strip().splitlines()) == 1
 
 
+def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"garbage")
+    out = run_script("--eval-only", "--checkpoint", str(bad), runs_dir=tmp_path)
+    assert out.returncode == 2 and "--checkpoint" in out.stderr and str(bad) in out.stderr
+
+
 def test_help_lists_every_field_with_its_docstring():
     out = subprocess.run([sys.executable, "gangstr_hme.py", "--help"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0
     for flag, words in [("--sp-ratio", "probability that a cycle is social"), ("--her-strategy", "HER relabelling")]:
         assert flag in out.stdout and words in " ".join(out.stdout.split())
+
+
+# ------------------------------------------------------------------------------------------------
+# 9. Watching a trained agent: --eval-only and --capture-video
+# ------------------------------------------------------------------------------------------------
+def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path, gl):
+    import imageio_ffmpeg  # noqa: PLC0415
+
+    assert run_script("--sp-ratio", "0", "--n-blocks", "3", *TINY, runs_dir=tmp_path).returncode == 0
+    (run,) = tmp_path.iterdir()
+    argv = ["--eval-only", "--checkpoint", str(run / "checkpoint.pt"), "--eval-goals-per-class", "2",
+            "--capture-video", "--video-episodes", "1", "--seed", "4", "--threads", "1"]  # fmt: skip
+    out = run_script(*argv, runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    classes = list(og.evaluation_classes(3))
+    for name in classes:
+        assert f"{name:>6}  SR " in out.stdout
+    result = json.loads((run / "eval_epoch1_seed4.json").read_text())
+    assert set(result["sr"]) == {*classes, "global"} and result["goals_per_class"] == 2
+    assert result["sr"]["global"] == pytest.approx(np.mean([result["sr"][k] for k in classes]))
+    for name in classes:
+        video = run / "videos" / f"epoch1_{name}.mp4"
+        frames = int(re.search(rf"{video.name} \((\d+) frames\)", out.stdout).group(1))
+        reader = imageio_ffmpeg.read_frames(str(video))
+        meta = next(reader)
+        decoded = [np.frombuffer(f, np.uint8) for f in reader]
+        assert meta["size"] == (480, 480) and meta["fps"] == pytest.approx(25.0)
+        assert len(decoded) == frames and frames % 10 == 0 and 10 <= frames <= 10 * 9  # whole 10-step segments
+        assert decoded[0].size == 480 * 480 * 3 and decoded[0].std() > 10  # a picture, not a blank
