@@ -11,7 +11,6 @@ thread, and `torchrun --nproc-per-node 2` with one thread per worker.
 
 import argparse
 import csv
-import shutil
 import statistics
 import subprocess
 import sys
@@ -38,7 +37,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--n-blocks", type=int, default=5)
     args = parser.parse_args()
-    torchrun = [shutil.which("torchrun") or "torchrun", "--standalone", "--nproc-per-node", "2"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
     conditions = {
         "1 process, all cores": ([sys.executable], 0),
         "1 process, 1 thread": ([sys.executable], 1),

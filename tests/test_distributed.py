@@ -4,7 +4,6 @@ One torchrun launch (tests/dist_worker.py) serves every test here: each worker m
 its own fixed batch, trains a few cycles with the social partner, then runs a tiny gangstr_hme.main."""
 
 import csv
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,8 +20,8 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def workers(tmp_path_factory):
     out = tmp_path_factory.mktemp("dist")
-    torchrun = shutil.which("torchrun") or "torchrun"
-    cmd = [torchrun, "--standalone", "--nproc-per-node", "2", "tests/dist_worker.py", str(out)]
+    torchrun = [sys.executable, "-m", "torch.distributed.run"]  # what the torchrun command runs
+    cmd = [*torchrun, "--standalone", "--nproc-per-node", "2", "tests/dist_worker.py", str(out)]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     ranks = [torch.load(out / f"rank{r}.pt", weights_only=True) for r in (0, 1)]

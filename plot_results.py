@@ -1,0 +1,254 @@
+# Docs: README.md, section "Plotting"; the paper's figures (Section 4) from the runs' progress.csv.
+"""Plot the paper's figures from run folders (SPEC §10: one progress.csv row per epoch).
+
+    python plot_results.py --condition SP-20% runs/gangstr_hme__* --condition SP-0% runs/gangstr_sp0__* \
+        --reference SP-0% --out figures
+
+Each --condition names a condition and lists its run folders (one per seed). Figures, as PNG and PDF:
+- global_sr: global success rate over episodes, mean +- std over seeds; a star marks the points where
+  a condition differs from --reference (Welch's t-test, p < --alpha);
+- sr_per_class: success rate per evaluation class, one panel per class;
+- sp_per_class: per class, the social partner's proposals (frontier and beyond), the agent's distinct
+  encounters, and its success rate over time (first seed-mean of each condition that has proposals);
+- stepping_stones: the stepping stones left, per condition with a social partner.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import oracle_graph as og
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading runs
+# ------------------------------------------------------------------------------------------------
+def read_run(folder: Path) -> dict[str, np.ndarray]:
+    """Columns of a run folder's progress.csv as float arrays (one entry per epoch)."""
+    path = Path(folder) / "progress.csv"
+    if not path.is_file():
+        raise ValueError(f"no progress.csv in run folder {str(folder)!r}")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or "global_sr" not in rows[0]:
+        raise ValueError(f"{str(path)!r} has no rows with a global_sr column")
+    try:
+        run = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{str(path)!r} holds a value that is not a number ({e})") from None
+    config = Path(folder) / "config.json"
+    try:  # the block count sets the class sizes
+        run["n_blocks"] = int(json.loads(config.read_text())["n_blocks"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"cannot read n_blocks from {str(config)!r} ({type(e).__name__}: {e})") from None
+    return run
+
+
+def stack(runs: list[dict], column: str) -> np.ndarray:
+    """(seeds, epochs) of one column, cut to the shortest run of the condition."""
+    n = min(len(r[column]) for r in runs)
+    return np.stack([r[column][:n] for r in runs])
+
+
+def class_names(runs: list[dict]) -> list[str]:
+    return [k[3:] for k in runs[0] if k.startswith("sr_") and k not in ("sr_classes",)]
+
+
+# ------------------------------------------------------------------------------------------------
+# Welch's t-test (no SciPy: the Student-t tail through the regularized incomplete beta function)
+# ------------------------------------------------------------------------------------------------
+def _betacf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the incomplete beta function (modified Lentz)."""
+    tiny, c, d = 1e-300, 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 300):
+        for num in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),
+                    -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):  # fmt: skip
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-14:
+            break
+    return h
+
+
+def betainc(a: float, b: float, x: float) -> float:
+    """Regularized incomplete beta I_x(a, b)."""
+    if x <= 0.0 or x >= 1.0:
+        return float(x >= 1.0)
+    log_front = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)
+    if x < (a + 1.0) / (a + b + 2.0):
+        return math.exp(log_front) * _betacf(a, b, x) / a
+    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b
+
+
+def welch_p(x: np.ndarray, y: np.ndarray) -> float:
+    """Two-sided p-value of Welch's t-test for equal means (nan with fewer than 2 samples a side)."""
+    if len(x) < 2 or len(y) < 2:
+        return math.nan
+    vx, vy = np.var(x, ddof=1) / len(x), np.var(y, ddof=1) / len(y)
+    if vx + vy == 0:
+        return 1.0 if np.mean(x) == np.mean(y) else 0.0
+    t = (np.mean(x) - np.mean(y)) / math.sqrt(vx + vy)
+    df = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1))
+    return betainc(df / 2, 0.5, df / (df + t * t))
+
+
+# ------------------------------------------------------------------------------------------------
+# Figures
+# ------------------------------------------------------------------------------------------------
+def band(ax, x, values, label, color):
+    mean, std = values.mean(0), values.std(0)
+    ax.plot(x, mean, label=label, color=color)
+    ax.fill_between(x, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
+
+
+def save(fig, out: Path, name: str):
+    """PNG and PDF, each written then renamed."""
+    for ext in ("png", "pdf"):
+        tmp = out / f".{name}.tmp.{ext}"
+        fig.savefig(tmp, dpi=150, bbox_inches="tight")
+        os.replace(tmp, out / f"{name}.{ext}")
+
+
+def plot_global(plt, conditions: dict, reference: str | None, alpha: float, out: Path):
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colors = dict(zip(conditions, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4, strict=False))
+    for name, runs in conditions.items():
+        band(ax, stack(runs, "segments")[0], stack(runs, "global_sr"), f"{name} ({len(runs)} seeds)", colors[name])
+    if reference:  # stars above the curves where a condition differs from the reference
+        ref = stack(conditions[reference], "global_sr")
+        for k, (name, runs) in enumerate(c for c in conditions.items() if c[0] != reference):
+            sr = stack(runs, "global_sr")
+            n = min(sr.shape[1], ref.shape[1])
+            p = np.array([welch_p(sr[:, e], ref[:, e]) for e in range(n)])
+            x = stack(runs, "segments")[0][:n][p < alpha]
+            ax.scatter(x, np.full(len(x), 1.03 + 0.03 * k), marker="*", color=colors[name], s=25, clip_on=False)
+        ax.set_title(f"stars: Welch's t-test against {reference}, p < {alpha}", fontsize=9, pad=8 + 8 * len(conditions))
+    ax.set(xlabel="episodes (40-step segments, all workers)", ylabel="global success rate", ylim=(0, 1))
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(alpha=0.3)
+    save(fig, out, "global_sr")
+    plt.close(fig)
+
+
+def panels(plt, n: int, title: str):
+    cols = min(4, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.6 * rows), squeeze=False, sharex=True)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    fig.suptitle(title)
+    return fig, axes.flat
+
+
+def plot_per_class(plt, conditions: dict, out: Path):
+    names = class_names(next(iter(conditions.values())))
+    fig, axes = panels(plt, len(names), "success rate per class (mean +- std over seeds)")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
+    for ax, cls in zip(axes, names, strict=False):
+        for color, (name, runs) in zip(colors, conditions.items(), strict=False):
+            band(ax, stack(runs, "segments")[0], stack(runs, f"sr_{cls}"), name, color)
+        ax.set(title=cls, ylim=(0, 1))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.supxlabel("episodes")
+    fig.tight_layout()
+    save(fig, out, "sr_per_class")
+    plt.close(fig)
+
+
+def has_social_partner(runs: list[dict]) -> bool:
+    return any(k.startswith("sp_frontier_") and r[k].sum() > 0 for r in runs for k in r)
+
+
+def plot_social(plt, conditions: dict, out: Path):
+    """Per class, over time: the share of the social partner's proposals (frontier and beyond) that fall
+    in the class, the share of the class's configs the agent has met, and its success rate."""
+    social = {k: v for k, v in conditions.items() if has_social_partner(v)}
+    if not social:
+        return False
+    name, runs = next(iter(social.items()))
+    names = class_names(runs)
+    sizes = {k: len(v) for k, v in og.evaluation_classes(int(runs[0]["n_blocks"])).items()}
+    proposals = {k: stack(runs, f"sp_frontier_{k}") + stack(runs, f"sp_beyond_{k}") for k in [*names, "other"]}
+    total = np.maximum(sum(proposals.values()), 1)
+    fig, axes = panels(plt, len(names), f"{name}: social partner proposals, agent encounters and SR per class")
+    x = stack(runs, "segments")[0]
+    for ax, cls in zip(axes, names, strict=False):
+        ax.plot(x, (proposals[cls] / total).mean(0), color="tab:orange", label="share of SP proposals")
+        ax.plot(
+            x, stack(runs, f"encounters_{cls}").mean(0) / sizes[cls], color="tab:green", label="share of configs met"
+        )
+        ax.plot(x, stack(runs, f"sr_{cls}").mean(0), color="tab:blue", label="success rate")
+        ax.set(title=cls, ylim=(-0.02, 1.02))
+        ax.grid(alpha=0.3)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", bbox_to_anchor=(0.5, 0), ncol=3)
+    fig.supxlabel("episodes")
+    fig.tight_layout()
+    save(fig, out, "sp_per_class")
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, runs in social.items():
+        band(ax, stack(runs, "segments")[0], stack(runs, "stepping_stones"), name, None)
+    ax.set(xlabel="episodes", ylabel="stepping stones left", title="stepping stones over time")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    save(fig, out, "stepping_stones")
+    plt.close(fig)
+    return True
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--condition", nargs="+", action="append", required=True, metavar=("NAME", "RUN_DIR"),
+        help="a condition's name, then its run folders (one per seed); repeat it for each condition",
+    )  # fmt: skip
+    parser.add_argument("--reference", default=None, help="condition the others are tested against (Welch)")
+    parser.add_argument("--alpha", type=float, default=0.05, help="significance level of the stars")
+    parser.add_argument("--out", default="figures", help="folder for the PNG and PDF files")
+    args = parser.parse_args(argv)
+    conditions = {}
+    for name, *folders in args.condition:
+        if not folders:
+            parser.error(f"--condition {name!r} lists no run folder")
+        if name in conditions:
+            parser.error(f"--condition {name!r} is given twice")
+        try:
+            conditions[name] = [read_run(Path(f)) for f in folders]
+        except ValueError as e:
+            parser.error(str(e))  # exit code 2, one line naming the file
+    if args.reference is not None and args.reference not in conditions:
+        parser.error(f"--reference {args.reference!r} is not one of the conditions: {', '.join(conditions)}")
+    if not 0 < args.alpha < 1:
+        parser.error(f"--alpha must be in (0, 1), got {args.alpha}")
+    import matplotlib  # noqa: PLC0415 (after argument checks: a bad command line fails fast)
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    plot_global(plt, conditions, args.reference, args.alpha, out)
+    plot_per_class(plt, conditions, out)
+    social = plot_social(plt, conditions, out)
+    made = ["global_sr", "sr_per_class"] + (["sp_per_class", "stepping_stones"] if social else [])
+    print(f"wrote {', '.join(f'{m}.png/.pdf' for m in made)} to {out}/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

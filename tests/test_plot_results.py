@@ -1,0 +1,95 @@
+"""plot_results.py: the paper's figures from run folders, and its Welch's t-test."""
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import oracle_graph as og
+import plot_results as pr
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 12):
+    """A run folder with a progress.csv shaped like gangstr_hme.py's (3 blocks)."""
+    rng = np.random.default_rng(seed)
+    classes = list(og.evaluation_classes(3))
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"n_blocks": 3, "seed": seed}))
+    rows = []
+    for e in range(epochs):
+        sr = {c: float(np.clip(level * e / epochs + rng.normal(0, 0.02), 0, 1)) for c in classes}
+        row = dict(epoch=e, segments=500 * (e + 1), global_sr=np.mean(list(sr.values())))
+        row |= {f"sr_{c}": v for c, v in sr.items()}
+        row |= {f"encounters_{c}": min(e, 3) for c in classes}
+        for kind in ("frontier", "beyond"):
+            row |= {f"sp_{kind}_{c}": int(social) * int(rng.integers(0, 9)) for c in [*classes, "other"]}
+        row["stepping_stones"] = max(0, 30 - 3 * e) if social else 0
+        rows.append(row)
+    with (folder / "progress.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return folder
+
+
+def test_plots_are_written_as_png_and_pdf_for_several_conditions_and_seeds(tmp_path):
+    social = [fake_run(tmp_path / f"sp20_{s}", s, 0.9, True) for s in range(3)]
+    alone = [fake_run(tmp_path / f"sp0_{s}", 10 + s, 0.3, False) for s in range(3)]
+    out = tmp_path / "figures"
+    cmd = [sys.executable, "plot_results.py", "--condition", "SP-20%", *map(str, social),
+           "--condition", "SP-0%", *map(str, alone), "--reference", "SP-0%", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("global_sr", "sr_per_class", "sp_per_class", "stepping_stones"):
+        png, pdf = (out / f"{name}.png").read_bytes(), (out / f"{name}.pdf").read_bytes()
+        assert png.startswith(b"\x89PNG") and len(png) > 10_000
+        assert pdf.startswith(b"%PDF") and len(pdf) > 5_000
+    assert not list(out.glob(".*"))  # no temporary files left
+
+
+def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
+    runs = [fake_run(tmp_path / f"sp0_{s}", s, 0.5, False) for s in range(2)]
+    assert pr.main(["--condition", "SP-0%", *map(str, runs), "--out", str(tmp_path / "f")]) == 0
+    assert sorted(p.stem for p in (tmp_path / "f").glob("*.png")) == ["global_sr", "sr_per_class"]
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--condition", "A", "/nonexistent/run"], "/nonexistent/run"),
+        (["--condition", "A"], "'A'"),
+        (["--condition", "A", "RUN", "--reference", "B"], "'B'"),
+        (["--condition", "A", "RUN", "--alpha", "2"], "2.0"),
+    ],
+)
+def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
+    fake_run(tmp_path / "run", 0, 0.5, False)
+    argv = [str(tmp_path / "run") if a == "RUN" else a for a in argv]
+    with pytest.raises(SystemExit) as e:
+        pr.main([*argv, "--out", str(tmp_path / "f")])
+    assert e.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_regularized_incomplete_beta_matches_closed_forms():
+    for x in (0.05, 0.3, 0.5, 0.8, 0.99):
+        assert pr.betainc(2.5, 1.0, x) == pytest.approx(x**2.5, rel=1e-10)
+        assert pr.betainc(1.0, 3.0, x) == pytest.approx(1 - (1 - x) ** 3, rel=1e-10)
+        assert pr.betainc(4.0, 4.0, 0.5) == pytest.approx(0.5, rel=1e-10)
+
+
+def test_welch_p_value_matches_the_student_t_tail_with_two_degrees_of_freedom():
+    # Two samples of two with equal variances: Welch's df is exactly 2, where the two-sided tail of the
+    # t distribution is 1 - |t| / sqrt(2 + t^2).
+    x, y = np.array([0.0, 2.0]), np.array([1.0, 3.0])
+    t = -1 / math.sqrt(2)
+    assert pr.welch_p(x, y) == pytest.approx(1 - abs(t) / math.sqrt(2 + t * t), rel=1e-9)
+    assert pr.welch_p(np.array([0.1, 0.2, 0.15]), np.array([0.9, 0.95, 0.85])) < 0.01
+    assert pr.welch_p(np.array([0.5, 0.6]), np.array([0.5, 0.6])) == pytest.approx(1.0)
+    assert math.isnan(pr.welch_p(np.array([0.5]), np.array([0.5, 0.6])))
