@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import ast
 import collections
+import copy
 import csv
 import dataclasses
 import heapq
@@ -269,6 +270,18 @@ def mlp(n_in: int, n_hidden: int, n_out: int, out_relu: bool = True) -> nn.Seque
     return nn.Sequential(*layers, nn.ReLU()) if out_relu else nn.Sequential(*layers)
 
 
+def weight_view(module: nn.Module) -> nn.Module:
+    """A copy of `module` whose parameters are views of the original's that do not require grad: it
+    follows every optimizer step and checkpoint load, and spares acting the dispatch cost that torch
+    pays for each op on a tensor that requires grad (even under inference_mode)."""
+    view = copy.copy(module)
+    view._modules = {name: weight_view(child) for name, child in module._modules.items()}
+    view._parameters = {}
+    for name, p in module._parameters.items():
+        setattr(view, name, None if p is None else p.detach())  # plain tensors: no Parameter subclass either
+    return view
+
+
 def init_weights(module: nn.Module):
     """Xavier-uniform weights, zero biases (SPEC §5)."""
     for m in module.modules():
@@ -443,6 +456,7 @@ class SAC:
         self.critic_target = Critic(args.n_blocks).to(device)
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
+        self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
         self.normalizer = Normalizer(obs_dim)
@@ -453,10 +467,10 @@ class SAC:
         o = torch.as_tensor(self.normalizer(obs)[None], device=self.device)
         body, blocks = split_obs(o, self.gi.n)
         ag, g = torch.as_tensor(ag[None], device=self.device), torch.as_tensor(g[None], device=self.device)
-        msg = self.critic.messages(self.gi, blocks, ag, g)
-        mean, log_std = self.actor(body, blocks, msg)
+        msg = self.acting_critic.messages(self.gi, blocks, ag, g)
+        mean, log_std = self.acting_actor(body, blocks, msg)
         u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # no log-prob needed
-        return torch.tanh(u)[0].cpu().numpy()
+        return torch.tanh(u).cpu().numpy()[0]
 
     def losses(self, batch: dict):
         """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors."""

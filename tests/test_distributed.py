@@ -103,3 +103,17 @@ def test_a_single_process_needs_no_launcher():
     proc = subprocess.run([sys.executable, "-c", "import gangstr_hme as g; print(g.world(), g.rank())"], cwd=ROOT,
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.stdout.split() == ["1", "0"]
+
+
+@pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
+def test_the_baselines_train_with_two_workers(tmp_path, script):
+    argv = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
+            "--batch-size", "16", "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "2",
+            "--threads", "1", "--runs-dir", str(tmp_path)]  # fmt: skip
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", script, *argv]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    (run,) = tmp_path.iterdir()
+    with (run / "progress.csv").open() as f:
+        (row,) = list(csv.DictReader(f))
+    assert int(row["env_steps"]) == 2 * 2 * 3 * 10 and "2 worker(s)" in proc.stdout

@@ -115,6 +115,30 @@ def filled_buffer(n_seg=50, T=10, dim=9, seed=0):
     return buf
 
 
+def test_acting_follows_every_update_and_checkpoint_load_of_the_trained_weights():
+    agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
+    agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    obs, ag, goal, _ = random_inputs(3, batch=1)
+    o, a, g = obs[0].numpy(), ag[0].numpy(), goal[0].numpy()
+
+    def policy_mean():  # the trainable networks' deterministic action
+        with torch.no_grad():
+            return torch.tanh(forward(agent, obs, ag, goal, torch.zeros(1, 4))[0, :4]).numpy()
+
+    before = agent.act(o, a, g, deterministic=True)
+    np.testing.assert_allclose(before, policy_mean(), rtol=1e-5, atol=1e-6)
+    agent.update(filled_buffer().sample(32, np.random.default_rng(0), 0.8, "final"))
+    after = agent.act(o, a, g, deterministic=True)
+    assert not np.allclose(before, after)
+    np.testing.assert_allclose(after, policy_mean(), rtol=1e-5, atol=1e-6)
+    other = gh.SAC(gh.Args(n_blocks=3, seed=9), 55, torch.device("cpu"))
+    agent.actor.load_state_dict(other.actor.state_dict())
+    agent.critic.load_state_dict(other.critic.state_dict())
+    np.testing.assert_allclose(agent.act(o, a, g, deterministic=True), policy_mean(), rtol=1e-5, atol=1e-6)
+    acting = [*vars(agent.acting_actor.node[0]).values(), agent.acting_critic.message[0].weight]
+    assert not any(isinstance(t, torch.Tensor) and t.requires_grad for t in acting)
+
+
 def test_her_final_relabels_about_80_percent_with_the_last_achieved_config_and_recomputes_rewards():
     buf = filled_buffer()
     rng = np.random.default_rng(1)
