@@ -290,14 +290,11 @@ def init_weights(module: nn.Module):
             nn.init.zeros_(m.bias)
 
 
-def node_readout(node: nn.Sequential, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
-    """sum_i node([glob, local_i]) for a node net Linear -> ReLU -> Linear -> ReLU. The first layer's
-    columns for the graph-wide features (action, body) are applied once per graph, not once per node:
-    the same function, with fewer multiply-adds and no copies of glob for every node."""
-    first, second = node[0], node[2]
-    k = glob.shape[-1]
-    h = F.linear(local, first.weight[:, k:]) + F.linear(glob, first.weight[:, :k], first.bias)[:, None]
-    return F.relu(second(F.relu(h))).sum(1)
+def node_readout(node: nn.Sequential, glob: list[torch.Tensor], local: list[torch.Tensor]) -> torch.Tensor:
+    """sum_i node([glob, local_i]): the graph-wide features `glob` (B, .) go to every node, next to the
+    node's own features `local` (B, n, .); one concatenation of the parts."""
+    n = local[0].shape[1]
+    return node(torch.cat([g[:, None].expand(-1, n, -1) for g in glob] + local, dim=-1)).sum(1)
 
 
 class GraphIndex:
@@ -309,11 +306,11 @@ class GraphIndex:
         lookup = {(int(i), int(j)): k for k, (i, j) in enumerate(og.close_pairs(n_blocks))}
         close = [lookup[min(i, j), max(i, j)] for i, j in zip(src, dst, strict=True)]
         self.n = n_blocks
-        # Edge inputs are one gather from [g - ag (dim), positions (3n)]: for edge (i, j), the entries
-        # close{i,j} and "i on j" of g - ag, then the positions of i and j.
+        # Edge inputs are one gather from [g - ag (dim), block slices (15n)]: for edge (i, j), the entries
+        # close{i,j} and "i on j" of g - ag, then the positions of i and j (first 3 of their slices).
         dim = og.config_dim(n_blocks)
         above = np.arange(len(src)) + len(og.close_pairs(n_blocks))
-        pos = dim + 3 * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
+        pos = dim + PER_BLOCK * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
         index = np.column_stack([close, above, pos.reshape(len(src), 6)])  # (E, 8)
         self.edge_index = torch.tensor(index.ravel(), device=device)
 
@@ -337,15 +334,14 @@ class Critic(nn.Module):
     def messages(self, gi: GraphIndex, blocks, ag, g) -> torch.Tensor:
         """(B, n, 24): node i = max over its outgoing edges (i, j) of the edge messages."""
         b = len(blocks)
-        features = torch.cat([g - ag, blocks[..., :3].reshape(b, -1)], dim=1)
+        features = torch.cat([g - ag, blocks.reshape(b, -1)], dim=1)
         m = self.message(features[:, gi.edge_index].reshape(b, -1, 8))  # (B, E, 8) -> (B, E, 24)
         return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
 
     def q(self, body, blocks, action, msg):
         """Twin Q values; node input [action, body, block i, message i], summed over nodes."""
-        glob, local = torch.cat([action, body], dim=1), torch.cat([blocks, msg], dim=-1)
         return [
-            head(node_readout(node, glob, local)).squeeze(-1)
+            head(node_readout(node, [action, body], [blocks, msg])).squeeze(-1)
             for node, head in zip(self.q_nodes, self.q_heads, strict=True)
         ]
 
@@ -361,7 +357,7 @@ class Actor(nn.Module):
 
     def forward(self, body, blocks, msg):
         """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
-        h = self.head(node_readout(self.node, body, torch.cat([blocks, msg], dim=-1)))
+        h = self.head(node_readout(self.node, [body], [blocks, msg]))
         return self.mean(h), self.log_std(h).clamp(-20, 2)
 
     def sample(self, body, blocks, msg):

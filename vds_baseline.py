@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import ast
 import collections
+import copy
 import csv
 import dataclasses
 import heapq
@@ -263,6 +264,18 @@ def mlp(n_in: int, n_hidden: int, n_out: int, out_relu: bool = True) -> nn.Seque
     return nn.Sequential(*layers, nn.ReLU()) if out_relu else nn.Sequential(*layers)
 
 
+def weight_view(module: nn.Module) -> nn.Module:
+    """A copy of `module` whose parameters are views of the original's that do not require grad: it
+    follows every optimizer step and checkpoint load, and spares acting the dispatch cost that torch
+    pays for each op on a tensor that requires grad (even under inference_mode)."""
+    view = copy.copy(module)
+    view._modules = {name: weight_view(child) for name, child in module._modules.items()}
+    view._parameters = {}
+    for name, p in module._parameters.items():
+        setattr(view, name, None if p is None else p.detach())  # plain tensors: no Parameter subclass either
+    return view
+
+
 def init_weights(module: nn.Module):
     """Xavier-uniform weights, zero biases (SPEC §5)."""
     for m in module.modules():
@@ -271,14 +284,11 @@ def init_weights(module: nn.Module):
             nn.init.zeros_(m.bias)
 
 
-def node_readout(node: nn.Sequential, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
-    """sum_i node([glob, local_i]) for a node net Linear -> ReLU -> Linear -> ReLU. The first layer's
-    columns for the graph-wide features (action, body) are applied once per graph, not once per node:
-    the same function, with fewer multiply-adds and no copies of glob for every node."""
-    first, second = node[0], node[2]
-    k = glob.shape[-1]
-    h = F.linear(local, first.weight[:, k:]) + F.linear(glob, first.weight[:, :k], first.bias)[:, None]
-    return F.relu(second(F.relu(h))).sum(1)
+def node_readout(node: nn.Sequential, glob: list[torch.Tensor], local: list[torch.Tensor]) -> torch.Tensor:
+    """sum_i node([glob, local_i]): the graph-wide features `glob` (B, .) go to every node, next to the
+    node's own features `local` (B, n, .); one concatenation of the parts."""
+    n = local[0].shape[1]
+    return node(torch.cat([g[:, None].expand(-1, n, -1) for g in glob] + local, dim=-1)).sum(1)
 
 
 class GraphIndex:
@@ -290,11 +300,11 @@ class GraphIndex:
         lookup = {(int(i), int(j)): k for k, (i, j) in enumerate(og.close_pairs(n_blocks))}
         close = [lookup[min(i, j), max(i, j)] for i, j in zip(src, dst, strict=True)]
         self.n = n_blocks
-        # Edge inputs are one gather from [g - ag (dim), positions (3n)]: for edge (i, j), the entries
-        # close{i,j} and "i on j" of g - ag, then the positions of i and j.
+        # Edge inputs are one gather from [g - ag (dim), block slices (15n)]: for edge (i, j), the entries
+        # close{i,j} and "i on j" of g - ag, then the positions of i and j (first 3 of their slices).
         dim = og.config_dim(n_blocks)
         above = np.arange(len(src)) + len(og.close_pairs(n_blocks))
-        pos = dim + 3 * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
+        pos = dim + PER_BLOCK * np.stack([src, dst], axis=1)[:, :, None] + np.arange(3)  # (E, 2, 3)
         index = np.column_stack([close, above, pos.reshape(len(src), 6)])  # (E, 8)
         self.edge_index = torch.tensor(index.ravel(), device=device)
 
@@ -318,15 +328,14 @@ class Critic(nn.Module):
     def messages(self, gi: GraphIndex, blocks, ag, g) -> torch.Tensor:
         """(B, n, 24): node i = max over its outgoing edges (i, j) of the edge messages."""
         b = len(blocks)
-        features = torch.cat([g - ag, blocks[..., :3].reshape(b, -1)], dim=1)
+        features = torch.cat([g - ag, blocks.reshape(b, -1)], dim=1)
         m = self.message(features[:, gi.edge_index].reshape(b, -1, 8))  # (B, E, 8) -> (B, E, 24)
         return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
 
     def q(self, body, blocks, action, msg):
         """Twin Q values; node input [action, body, block i, message i], summed over nodes."""
-        glob, local = torch.cat([action, body], dim=1), torch.cat([blocks, msg], dim=-1)
         return [
-            head(node_readout(node, glob, local)).squeeze(-1)
+            head(node_readout(node, [action, body], [blocks, msg])).squeeze(-1)
             for node, head in zip(self.q_nodes, self.q_heads, strict=True)
         ]
 
@@ -342,7 +351,7 @@ class Actor(nn.Module):
 
     def forward(self, body, blocks, msg):
         """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
-        h = self.head(node_readout(self.node, body, torch.cat([blocks, msg], dim=-1)))
+        h = self.head(node_readout(self.node, [body], [blocks, msg]))
         return self.mean(h), self.log_std(h).clamp(-20, 2)
 
     def sample(self, body, blocks, msg):
@@ -437,6 +446,7 @@ class SAC:
         self.critic_target = Critic(args.n_blocks).to(device)
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
+        self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
         self.normalizer = Normalizer(obs_dim)
@@ -447,10 +457,10 @@ class SAC:
         o = torch.as_tensor(self.normalizer(obs)[None], device=self.device)
         body, blocks = split_obs(o, self.gi.n)
         ag, g = torch.as_tensor(ag[None], device=self.device), torch.as_tensor(g[None], device=self.device)
-        msg = self.critic.messages(self.gi, blocks, ag, g)
-        mean, log_std = self.actor(body, blocks, msg)
+        msg = self.acting_critic.messages(self.gi, blocks, ag, g)
+        mean, log_std = self.acting_actor(body, blocks, msg)
         u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # no log-prob needed
-        return torch.tanh(u)[0].cpu().numpy()
+        return torch.tanh(u).cpu().numpy()[0]
 
     def losses(self, batch: dict):
         """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors."""
@@ -850,7 +860,7 @@ class Learner:
         gi, critic = self.agent.gi, self.agent.critic
         body, blocks = split_obs(obs, gi.n)
         msg = critic.messages(gi, blocks, ag, g)
-        return node_readout(critic.q_nodes[0], torch.cat([action, body], 1), torch.cat([blocks, msg], -1))
+        return node_readout(critic.q_nodes[0], [action, body], [blocks, msg])
 
     @torch.no_grad()
     def disagreement(self, candidates: np.ndarray) -> np.ndarray:

@@ -158,7 +158,7 @@ class ScriptedWorld:
         self.config = self.start
         self.log.append("reset")
 
-    def segment(self, env, agent, goal, args, deterministic):
+    def segment(self, env, agent, goal, args, deterministic, frames=None):
         g = int(og.to_mask(goal))
         before = self.config
         success = self.script(g, deterministic)
