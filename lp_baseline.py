@@ -345,14 +345,16 @@ class Actor(nn.Module):
         super().__init__()
         self.node = mlp(BODY + PER_BLOCK + MSG, 256, 147)
         self.head = nn.Sequential(nn.Linear(147, 256), nn.ReLU())
-        self.mean = nn.Linear(256, 4)
-        self.log_std = nn.Linear(256, 4)
+        self.gaussian = nn.Linear(256, 8)  # SPEC §5's mean and log-std layers, Linear(256, 4) each, stacked
         init_weights(self)
+        nn.init.xavier_uniform_(self.gaussian.weight.data[:4])  # Xavier bounds of two (256 -> 4) layers
+        nn.init.xavier_uniform_(self.gaussian.weight.data[4:])
 
     def forward(self, body, blocks, msg):
         """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
         h = self.head(node_readout(self.node, [body], [blocks, msg]))
-        return self.mean(h), self.log_std(h).clamp(-20, 2)
+        mean, log_std = self.gaussian(h).chunk(2, dim=-1)  # one matmul for both: cheaper acting
+        return mean, log_std.clamp(-20, 2)
 
     def sample(self, body, blocks, msg):
         """Squashed Gaussian action and its log-probability (with the tanh correction)."""
