@@ -146,7 +146,7 @@ def test_disagreement_is_the_std_of_the_heads_q_values_for_each_candidate():
             ag, g = torch.as_tensor(obs["achieved_goal"][None]), torch.as_tensor(og.from_mask(c, 3)[None])
             body, blocks = vds.split_obs(o, 3)
             a = torch.tanh(
-                learner.agent.actor(body, blocks, learner.agent.critic.messages(learner.agent.gi, blocks, ag, g))[0]
+                learner.agent.actor(body, blocks, learner.agent.critic.messages(learner.agent.gi, blocks, g - ag))[0]
             )
             q = torch.stack([h(learner.readout(o, ag, g, a)) for h in learner.vds.heads]).squeeze()
             assert s == pytest.approx(q.std().item(), rel=1e-4)  # fmt: skip

@@ -67,7 +67,7 @@ def random_inputs(n, batch=6, seed=0):
 
 def forward(agent, obs, ag, goal, act):
     body, blocks = gh.split_obs(obs, agent.gi.n)
-    msg = agent.critic.messages(agent.gi, blocks, ag, goal)
+    msg = agent.critic.messages(agent.gi, blocks, goal - ag)
     mean, log_std = agent.actor(body, blocks, msg)
     return torch.cat([mean, log_std, *[q[:, None] for q in agent.critic.q(body, blocks, act, msg)]], dim=1)
 
@@ -175,10 +175,10 @@ def test_sac_losses_follow_the_spec_on_a_tiny_batch():
     b1, k1 = gh.split_obs(t["obs"], 3)
     b2, k2 = gh.split_obs(t["obs_next"], 3)
     with torch.no_grad():
-        a2, logp2 = agent.actor.sample(b2, k2, agent.critic.messages(agent.gi, k2, t["ag_next"], t["g"]))
-        tq = agent.critic_target.q(b2, k2, a2, agent.critic_target.messages(agent.gi, k2, t["ag_next"], t["g"]))
+        a2, logp2 = agent.actor.sample(b2, k2, agent.critic.messages(agent.gi, k2, t["g"] - t["ag_next"]))
+        tq = agent.critic_target.q(b2, k2, a2, agent.critic_target.messages(agent.gi, k2, t["g"] - t["ag_next"]))
         y = t["reward"] + 0.99 * (torch.min(tq[0], tq[1]) - 0.2 * logp2)
-        msg = agent.critic.messages(agent.gi, k1, t["ag"], t["g"])
+        msg = agent.critic.messages(agent.gi, k1, t["g"] - t["ag"])
         q1, q2 = agent.critic.q(b1, k1, t["action"], msg)
         expected_critic = ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()
         pi, logp = agent.actor.sample(b1, k1, msg)
@@ -281,13 +281,35 @@ def test_unstable_segments_leave_the_graph_unchanged():
     assert learner.graph.n_nodes == 3
 
 
-def test_segments_report_stability_over_the_last_steps():
+class ScriptedConfigs:
+    """A stand-in env whose achieved config switches from `before` to `after` at step `switch`."""
+
+    obs_dim, goal_dim = 55, 9
+
+    def __init__(self, before, after, switch):
+        self.before, self.after, self.switch, self.t = before, after, switch, 0
+
+    def obs(self):
+        ag = self.after if self.t >= self.switch else self.before
+        return {"observation": np.zeros(55, np.float32), "achieved_goal": ag.astype(np.float32)}
+
+    def set_goal(self, goal):
+        return self.obs()
+
+    def step(self, action):
+        self.t += 1
+        return self.obs(), 0.0, False, False, {}
+
+
+@pytest.mark.parametrize("switch, stable", [(1, True), (3, True), (4, False), (6, False)])
+def test_a_segment_is_stable_only_if_its_final_config_held_over_the_last_stable_steps(switch, stable):
     args = gh.Args(n_blocks=3, segment_len=6, stable_steps=3)
-    learner = gh.Learner(args, torch.device("cpu"))
-    seg = gh.run_segment(learner.env, learner.agent, og.make_config(3), args, deterministic=True)
+    agent = gh.Learner(args, torch.device("cpu")).agent
+    apart, pair = og.make_config(3), og.make_config(3, close=[(0, 1)])
+    seg = gh.run_segment(ScriptedConfigs(apart, pair, switch), agent, pair, args, deterministic=True)
     assert seg.obs.shape == (7, 55) and seg.ag.shape == (7, 9) and seg.actions.shape == (6, 4)
-    assert seg.stable == bool((seg.ag[3:] == seg.ag[-1]).all())
-    assert seg.success == bool((seg.ag[-1] == og.make_config(3)).all())
+    assert seg.stable == stable  # the config after step 3 must already be the final one
+    assert seg.success  # success reads the final config only
 
 
 def random_graph(n_nodes, p, seed):
