@@ -1154,9 +1154,22 @@ def load_checkpoint(path: str, flag: str = "--resume") -> dict:
         Args(**state["args"])
         return state
     except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
-        reason = (str(e).strip().splitlines() or [""])[0]
-        print(f"error: {flag}: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
-        sys.exit(2)
+        checkpoint_error(flag, path, e)
+
+
+def restore(learner, state: dict, path: str, flag: str):
+    """learner.load_state_dict, or exit 2 with one line if the checkpoint does not fit these networks
+    (written by another version of the script, say)."""
+    try:
+        learner.load_state_dict(state)
+    except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
+        checkpoint_error(flag, path, e)
+
+
+def checkpoint_error(flag: str, path: str, e: Exception):
+    reason = " ".join(str(e).split())[:200]  # one line, however long torch's message
+    print(f"error: {flag}: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
+    sys.exit(2)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1218,7 +1231,7 @@ def evaluate_checkpoint(args: Args, device) -> int:
     args = dataclasses.replace(saved, eval_only=True, checkpoint=args.checkpoint, resume="",
                                buffer_size=saved.segment_len, **{k: getattr(args, k) for k in keep})  # fmt: skip
     learner = Learner(args, device)
-    learner.load_state_dict(state)
+    restore(learner, state, args.checkpoint, "--checkpoint")
     learner.rng = np.random.default_rng(args.seed + rank())  # the evaluation's own seed, not the run's
     learner.env.reset(seed=args.seed + rank())
     video = {} if args.capture_video and rank() == 0 else None
@@ -1271,7 +1284,7 @@ def main(argv=None):
             (run_dir / "config.json").write_text(json.dumps(config, indent=2))
     learner = Learner(args, device)
     if checkpoint is not None:
-        learner.load_state_dict(checkpoint)
+        restore(learner, checkpoint, args.resume, "--resume")
         progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
     logger = Logger(run_dir) if main_worker else None
     ckpt_path = run_dir / "checkpoint.pt"

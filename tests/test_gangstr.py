@@ -487,6 +487,20 @@ def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
     assert out.returncode == 2 and "--checkpoint" in out.stderr and str(bad) in out.stderr
 
 
+@pytest.mark.parametrize("flag", ["--resume", "--checkpoint"])
+def test_a_checkpoint_from_other_networks_exits_2_naming_the_mismatch(tmp_path, flag):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    state = learner.state_dict()
+    state["actor"]["mean.weight"] = state["actor"].pop("gaussian.weight")  # as an older version named it
+    path = tmp_path / "other.pt"
+    torch.save(state, path)
+    out = run_script(
+        *([flag, str(path)] if flag == "--resume" else ["--eval-only", flag, str(path)]), runs_dir=tmp_path
+    )
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
+    assert flag in out.stderr and str(path) in out.stderr and "gaussian.weight" in out.stderr
+
+
 def test_help_lists_every_field_with_its_docstring():
     out = subprocess.run([sys.executable, "gangstr_hme.py", "--help"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0
