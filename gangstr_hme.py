@@ -973,8 +973,10 @@ class Learner:
 
     def rehearsal_cycle(self) -> list[Segment]:
         """Internalization (SPEC §7): reset, draw a stored (frontier, beyond) pair, go to the frontier
-        deterministically, then attempt the beyond goal, without reset, until it succeeds or the cycle's
-        segments are spent."""
+        deterministically, then attempt the beyond goal once, without reset; repeat until the cycle's
+        segments are spent. One attempt per pair, "exactly as if the social partner was there" (paper
+        Section 3.4; appendix Algorithm 1: goals = [g, g_b]). Repeating a failed attempt from wherever
+        it left the gripper moved a block in 1.7% of such segments, a third of an SP-20% run's data."""
         n, segments = self.args.n_segments, []
         while len(segments) < n:
             self.env.reset()
@@ -982,11 +984,9 @@ class Learner:
             frontier, beyond = self.internalization_buffer[self.rng.integers(len(self.internalization_buffer))]
             segs, arrived = self.go_to_frontier(frontier, n - len(segments))
             segments += segs
-            while arrived and len(segments) < n:
+            if arrived and len(segments) < n:
                 segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks),
                                             self.args, deterministic=False))  # fmt: skip
-                if segments[-1].success:
-                    break
         return segments
 
     def propose(self, kind: str, goal: int):

@@ -223,11 +223,11 @@ def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_g
     learner.graph = agent_graph([(APART, C01)])
     stack = M(close=[(0, 1)], above=[(0, 1)])
     learner.internalization_buffer = [(C01, stack)]
-    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)  # beyond attempts keep failing
+    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)  # beyond attempts fail
     segments = learner.rehearsal_cycle()
     assert len(segments) == 10
-    assert world.log[:3] == ["reset", (C01, "det", True), (stack, "stoch", False)]
-    assert world.log[3:] == [(stack, "stoch", False)] * 8  # no reset: the rest of the cycle on the beyond goal
+    # One attempt per drawn pair (no reset between frontier and beyond), then reset and draw again.
+    assert world.log == ["reset", (C01, "det", True), (stack, "stoch", False)] * 5
 
 
 def test_a_partner_with_nothing_to_propose_leaves_the_cycle_autotelic(monkeypatch, sp):
