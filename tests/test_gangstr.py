@@ -135,7 +135,7 @@ def test_acting_follows_every_update_and_checkpoint_load_of_the_trained_weights(
     agent.actor.load_state_dict(other.actor.state_dict())
     agent.critic.load_state_dict(other.critic.state_dict())
     np.testing.assert_allclose(agent.act(o, a, g, deterministic=True), policy_mean(), rtol=1e-5, atol=1e-6)
-    acting = [*vars(agent.acting_actor.node[0]).values(), agent.acting_critic.message[0].weight]
+    acting = [*vars(agent.acting_actor.node.hidden).values(), agent.acting_critic.message.hidden.weight]
     assert not any(isinstance(t, torch.Tensor) and t.requires_grad for t in acting)
 
 
@@ -491,14 +491,14 @@ def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
 def test_a_checkpoint_from_other_networks_exits_2_naming_the_mismatch(tmp_path, flag):
     learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
     state = learner.state_dict()
-    state["actor"]["mean.weight"] = state["actor"].pop("gaussian.weight")  # as an older version named it
+    state["actor"]["mean.weight"] = state["actor"].pop("head.out.weight")  # as an older version named it
     path = tmp_path / "other.pt"
     torch.save(state, path)
     out = run_script(
         *([flag, str(path)] if flag == "--resume" else ["--eval-only", flag, str(path)]), runs_dir=tmp_path
     )
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
-    assert flag in out.stderr and str(path) in out.stderr and "gaussian.weight" in out.stderr
+    assert flag in out.stderr and str(path) in out.stderr and "head.out.weight" in out.stderr
 
 
 def test_help_lists_every_field_with_its_docstring():
