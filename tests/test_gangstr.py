@@ -90,6 +90,18 @@ def test_gnn_outputs_are_invariant_to_a_consistent_permutation_of_the_blocks(n):
     assert not torch.allclose(forward(agent, obs, ag, -goal, act), ref)  # the goal matters
 
 
+@pytest.mark.parametrize("out_relu", [True, False])
+def test_every_net_is_linear_relu_linear_with_the_final_relu_only_where_the_spec_has_it(out_relu):
+    torch.manual_seed(0)
+    net = gh.MLP(7, 16, 5, out_relu=out_relu)
+    x = torch.randn(3, 4, 7)
+    h = (x @ net.hidden.weight.T + net.hidden.bias).clamp(min=0)
+    y = h @ net.out.weight.T + net.out.bias
+    torch.testing.assert_close(net(x), y.clamp(min=0) if out_relu else y)
+    assert (y < 0).any()  # so that the final ReLU, or its absence, shows
+    torch.testing.assert_close(gh.weight_view(net)(x), net(x))  # the acting view computes the same
+
+
 def test_parameter_count_matches_the_layer_sizes_of_the_spec():
     def linear(i, o):
         return i * o + o
