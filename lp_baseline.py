@@ -294,11 +294,12 @@ def init_weights(module: nn.Module):
             nn.init.zeros_(m.bias)
 
 
-def node_readout(node: MLP, glob: list[torch.Tensor], local: list[torch.Tensor]) -> torch.Tensor:
-    """sum_i node([glob, local_i]): the graph-wide features `glob` (B, .) go to every node, next to the
-    node's own features `local` (B, n, .); one concatenation of the parts."""
+def node_inputs(glob: list[torch.Tensor], local: list[torch.Tensor]) -> torch.Tensor:
+    """(B, n, .) node inputs [glob, local_i]: the graph-wide features `glob` (B, .) go to every node,
+    next to the node's own features `local` (B, n, .); one concatenation of the parts. A node net
+    then reads them out as node(inputs).sum(1)."""
     n = local[0].shape[1]
-    return node(torch.cat([g[:, None].expand(-1, n, -1) for g in glob] + local, dim=-1)).sum(1)
+    return torch.cat([g[:, None].expand(-1, n, -1) for g in glob] + local, dim=-1)
 
 
 class GraphIndex:
@@ -344,11 +345,10 @@ class Critic(nn.Module):
         return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
 
     def q(self, body, blocks, action, msg):
-        """Twin Q values; node input [action, body, block i, message i], summed over nodes."""
-        return [
-            head(node_readout(node, [action, body], [blocks, msg])).squeeze(-1)
-            for node, head in zip(self.q_nodes, self.q_heads, strict=True)
-        ]
+        """Twin Q values; node input [action, body, block i, message i] (built once for both twins),
+        summed over nodes."""
+        x = node_inputs([action, body], [blocks, msg])
+        return [head(node(x).sum(1)).squeeze(-1) for node, head in zip(self.q_nodes, self.q_heads, strict=True)]
 
 
 class Actor(nn.Module):
@@ -364,7 +364,7 @@ class Actor(nn.Module):
 
     def forward(self, body, blocks, msg):
         """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
-        mean, log_std = self.head(node_readout(self.node, [body], [blocks, msg])).chunk(2, dim=-1)
+        mean, log_std = self.head(self.node(node_inputs([body], [blocks, msg])).sum(1)).chunk(2, dim=-1)
         return mean, log_std.clamp(-20, 2)
 
     def sample(self, body, blocks, msg):
