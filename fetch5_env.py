@@ -27,6 +27,7 @@ from gymnasium import spaces
 
 import oracle_graph as og
 
+ENV_VERSION = 2  # bump when physics or observations change: checkpoints of another version are refused
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "fetch_manipulate.xml"
 N_SUBSTEPS = 20  # 20 x 0.002 s physics steps per control step (SPEC §3)
 MAX_EPISODE_STEPS = 40  # one segment (SPEC §5)

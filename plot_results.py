@@ -44,6 +44,8 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
         run = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
     except (TypeError, ValueError) as e:
         raise ValueError(f"{str(path)!r} holds a value that is not a number ({e})") from None
+    if "epoch" in run and not np.array_equal(run["epoch"], np.arange(len(rows))):
+        raise ValueError(f"{str(path)!r}: epochs are not 0, 1, 2... once each (a duplicated or missing epoch)")
     config = Path(folder) / "config.json"
     try:  # the block count sets the class sizes
         run["n_blocks"] = int(json.loads(config.read_text())["n_blocks"])

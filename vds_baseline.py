@@ -16,17 +16,22 @@ from __future__ import annotations
 import argparse
 import ast
 import collections
+import contextlib
 import copy
 import csv
 import dataclasses
+import gc
 import heapq
 import inspect
+import itertools
 import json
 import math
 import os
+import re
 import signal
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,16 +137,32 @@ def _field_docs(cls) -> dict[str, str]:
     }
 
 
-def parse_args(argv=None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str):
+        """Bad input: one line naming the value, exit code 2 (not argparse's screen of usage)."""
+        self.exit(2, f"{self.prog}: error: {message} (--help lists every option)\n")
+
+
+def make_parser(with_defaults: bool = True) -> argparse.ArgumentParser:
+    """argparse built from Args, each field's docstring and default its --help line. Without defaults,
+    parsing yields only the flags the user gave (see given_flags)."""
+    parser = OneLineParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    if not with_defaults:
+        parser.argument_default = argparse.SUPPRESS
     docs = {k: v.replace("%", "%%") for k, v in _field_docs(Args).items()}  # argparse formats help with %
     for f in dataclasses.fields(Args):
-        flag = "--" + f.name.replace("_", "-")
+        flag, default = "--" + f.name.replace("_", "-"), f.default if with_defaults else argparse.SUPPRESS
+        text = docs[f.name] + (f" (default: {f.default!r})" if with_defaults else "")
         if f.type in ("bool", bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=text)
         else:
             kind = {"int": int, "float": float, "str": str}[f.type]
-            parser.add_argument(flag, type=kind, default=f.default, help=docs[f.name], metavar=kind.__name__.upper())
+            parser.add_argument(flag, type=kind, default=default, help=text, metavar=kind.__name__.upper())
+    return parser
+
+
+def parse_args(argv=None) -> Args:
+    parser = make_parser()
     args = Args(**vars(parser.parse_args(argv)))
     problem = check_args(args)
     if problem:
@@ -149,32 +170,76 @@ def parse_args(argv=None) -> Args:
     return args
 
 
+def given_flags(argv=None) -> set[str]:
+    """The Args fields the command line sets explicitly (whatever their value)."""
+    return set(vars(make_parser(with_defaults=False).parse_args(argv)))
+
+
 def check_args(a: Args) -> str | None:
     """The first bad value in a, described, or None."""
-    for name in ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size"):
+    for f in dataclasses.fields(Args):
+        value = getattr(a, f.name)
+        if f.type in ("float", float) and not math.isfinite(value):
+            return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
+    at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
+                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals")  # fmt: skip
+    for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "eval_goals_per_class", "threads", "k_shortest", "stable_steps"):
+    for name in ("n_updates", "her_k", "threads", "video_episodes"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
+    if not 0 <= a.seed < 2**32:
+        return f"--seed must be in [0, 2**32), got {a.seed}"
+    if a.alpha < 0:
+        return f"--alpha must be non-negative, got {a.alpha}"
+    for name in ("lr_actor", "lr_critic"):
+        if getattr(a, name) <= 0:
+            return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
         return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
     if a.her_strategy not in ("final", "future"):
         return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
-    if a.max_path_len < 2 or a.max_eval_subgoals < 1 or a.target_update_every < 1:
-        return f"--max-path-len must be >= 2, --max-eval-subgoals and --target-update-every >= 1, got {a}"
+    if a.max_path_len < 2:
+        return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
     if a.stable_steps > a.segment_len:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
-    if a.resume and not os.access(a.resume, os.R_OK):
+    if a.buffer_size < a.n_segments * a.segment_len:
+        return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
+    if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
+        return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
+        return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
+    if a.cuda and not torch.cuda.is_available():
+        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
+    return check_run_control(a) or check_sampler_args(a)
+
+
+MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
+
+
+def check_run_control(a: Args) -> str | None:
+    """--resume, --eval-only, --checkpoint, --capture-video and --runs-dir: what they need."""
+    if a.resume and a.eval_only:
+        return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
+    if a.resume and not os.path.isfile(a.resume):
         return f"--resume: cannot read checkpoint {a.resume!r}"
-    if a.eval_only and not os.access(a.checkpoint, os.R_OK):
+    if a.eval_only and not os.path.isfile(a.checkpoint):
         return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
-    if a.video_episodes < 0:
-        return f"--video-episodes must be non-negative, got {a.video_episodes}"
-    return check_sampler_args(a)
+    if a.checkpoint and not a.eval_only:
+        return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
+    if a.capture_video and not a.eval_only:
+        return "--capture-video films an --eval-only evaluation; add --eval-only --checkpoint PATH"
+    if not (a.resume or a.eval_only):
+        parent = Path(a.runs_dir).absolute()
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            return f"--runs-dir {a.runs_dir!r}: cannot create a run folder under {str(parent)!r}"
+    return None
 
 
 def check_sampler_args(a: Args) -> str | None:
@@ -397,6 +462,9 @@ class Normalizer:
         self.sum += s
         self.sumsq += ss
         self.count += count
+        if self.count == 0:  # nothing seen yet (a checkpoint from before the first cycle): the identity
+            self.mean, self.std = np.zeros_like(self.sum), np.ones_like(self.sum)
+            return
         self.mean = self.sum / self.count
         self.std = np.sqrt(np.maximum(self.eps**2, self.sumsq / self.count - self.mean**2))
 
@@ -836,6 +904,8 @@ class Learner:
         self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
         self.plan_seconds = 0.0  # planning + graph updates, for the speed report
         self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler
+        self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
+        self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
         self.init_goal_sampler()
 
     # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
@@ -899,7 +969,8 @@ class Learner:
         self.stats["vds_scored"] += 1
         self.stats["vds_disagreement"] += float(score.mean())
         self.stats["vds_spread"] += float(score.max() - score.min())
-        return int(candidates[self.rng.choice(len(candidates), p=softmax(score / a.vds_temperature))])
+        logits = (score - score.max()) / a.vds_temperature  # shifted first: a tiny temperature gives inf - inf
+        return int(candidates[self.rng.choice(len(candidates), p=softmax(logits))])
 
     def goal_outcome(self, goal: int, reached: bool):
         self.goals += 1
@@ -999,10 +1070,14 @@ class Learner:
     def state_dict(self) -> dict:
         ag = self.agent
         state = dict(
+            script=SCRIPT,
+            env_version=ENV_VERSION,
             args=dataclasses.asdict(self.args),
             counters=dict(
                 epoch=self.epoch, cycle=self.cycle, segments=self.segments, goals=self.goals, n_updates=ag.n_updates
             ),
+            epoch_so_far=dict(tally=copy.deepcopy(self.tally), stats=plain(self.stats), plan_seconds=self.plan_seconds),
+            rows=copy.deepcopy(self.rows),
             actor=ag.actor.state_dict(),
             critic=ag.critic.state_dict(),
             critic_target=ag.critic_target.state_dict(),
@@ -1039,6 +1114,10 @@ class Learner:
             c["goals"],
             c["n_updates"],
         )
+        so_far = s["epoch_so_far"]
+        self.tally, self.plan_seconds = so_far["tally"], so_far["plan_seconds"]
+        self.stats = collections.Counter(so_far["stats"])
+        self.rows = s["rows"]
         for name in ("actor", "critic", "critic_target", "actor_opt", "critic_opt"):
             getattr(ag, name).load_state_dict(s[name])
         ag.normalizer.sum[:], ag.normalizer.sumsq[:], ag.normalizer.count = 0.0, 0.0, 0
@@ -1047,9 +1126,11 @@ class Learner:
         self.encountered = set(s["encountered"].tolist())
         self.load_sampler_state(s)
         if rank() > 0:  # the checkpoint holds worker 0's random streams and replay: the others start anew
-            self.rng = np.random.default_rng([self.args.seed + rank(), self.epoch])
+            self.rng = np.random.default_rng([self.args.seed + rank(), self.epoch, self.cycle])
             self.env.reset(seed=int(self.rng.integers(2**31)))
-            torch.manual_seed(self.args.seed + rank() + 1000 * self.epoch)
+            torch.manual_seed(self.args.seed + rank() + 1000 * self.epoch + self.cycle)
+            self.stats.clear()  # this epoch's counts so far are worker 0's own: the others start again
+            self.tally.update(wins=0, tries=0)
             return
         self.rng.bit_generator.state = json.loads(s["rng"])
         self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
@@ -1062,21 +1143,45 @@ class Learner:
             b.size, b.ptr = n, s["buffer"]["ptr"]
 
 
-def save_checkpoint(learner: Learner, path: Path):
-    """Write then rename: an interrupted save never leaves a broken checkpoint."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(learner.state_dict(), tmp)
+# ------------------------------------------------------------------------------------------------
+# Checkpoints (plumbing; SPEC §10): atomic saves, safe loads, what --resume and --eval-only may change
+# ------------------------------------------------------------------------------------------------
+SCRIPT = Path(__file__).stem  # a checkpoint names the script that wrote it
+ENV_VERSION = fetch5_env.ENV_VERSION  # ... and the environment it was trained in
+CHECKPOINT_KEYS = ("script", "env_version", "args", "counters", "actor", "critic")
+
+
+def plain(d: dict) -> dict:
+    """d with numpy scalars as Python numbers: a weights_only load accepts nothing else."""
+    return {k: v.item() if isinstance(v, np.generic) else v for k, v in d.items()}
+
+
+def save_checkpoint(state: dict, path: Path):
+    """Write then rename: an interrupted save (even kill -9) never leaves a broken checkpoint."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
     os.replace(tmp, path)
 
 
 def load_checkpoint(path: str, flag: str = "--resume") -> dict:
-    """A checkpoint, or exit 2 with one line naming the file (never unpickles code: weights_only)."""
+    """A checkpoint of this script, or exit 2 with one line saying what the file is instead. Loading never
+    runs code from the file (weights_only)."""
     try:
         state = torch.load(path, weights_only=True, map_location="cpu")
-        Args(**state["args"])
-        return state
     except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
-        checkpoint_error(flag, path, e)
+        checkpoint_error(flag, path, f"not a checkpoint ({type(e).__name__}: {e})")
+    if not isinstance(state, dict) or not all(k in state for k in CHECKPOINT_KEYS):
+        checkpoint_error(flag, path, "not a checkpoint of this project (a torch file without its keys)")
+    if state["script"] != SCRIPT:
+        checkpoint_error(flag, path, f"a checkpoint of {state['script']}.py, not of {SCRIPT}.py: use that script")
+    if state["env_version"] != ENV_VERSION:
+        checkpoint_error(flag, path, f"trained in environment version {state['env_version']}, but fetch5_env.py is "
+                                     f"now version {ENV_VERSION} (the environment changed): retrain")  # fmt: skip
+    try:
+        Args(**state["args"])
+    except TypeError as e:
+        checkpoint_error(flag, path, f"written by another version of {SCRIPT}.py ({e})")
+    return state
 
 
 def restore(learner, state: dict, path: str, flag: str):
@@ -1085,26 +1190,55 @@ def restore(learner, state: dict, path: str, flag: str):
     try:
         learner.load_state_dict(state)
     except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
-        checkpoint_error(flag, path, e)
+        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
 
 
-def checkpoint_error(flag: str, path: str, e: Exception):
-    reason = " ".join(str(e).split())[:200]  # one line, however long torch's message
-    print(f"error: {flag}: cannot load checkpoint {path!r}: {type(e).__name__}: {reason}", file=sys.stderr)
+def checkpoint_error(flag: str, path: str, reason: str):
+    reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
+    print(f"error: {flag}: cannot load checkpoint {path!r}: {reason}", file=sys.stderr)
     sys.exit(2)
 
 
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
+EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "threads",
+                "cuda", "eval_only", "checkpoint")  # fmt: skip
+
+
+def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
+    """The checkpoint's arguments with this command line's run-control flags; exit 2 naming every given
+    flag that contradicts the checkpoint (it would silently be ignored otherwise)."""
+    saved = Args(**state["args"])
+    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL
+    bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
+           for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
+    if bad:
+        print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
+        sys.exit(2)
+    # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
+    # unless given again (threads, say: a different thread count changes float sums).
+    keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
+    return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
+
+
 # ------------------------------------------------------------------------------------------------
-# Outputs (SPEC §10)
+# Outputs (plumbing; SPEC §10)
 # ------------------------------------------------------------------------------------------------
 class Logger:
-    """progress.csv (one row per epoch) and TensorBoard scalars with the same names."""
+    """progress.csv (one row per epoch) and TensorBoard scalars with the same names. On resume, both are
+    rebuilt from the checkpoint's rows: an epoch logged after the checkpoint is dropped, one missing is
+    written, so every epoch appears once whenever the run was stopped."""
 
-    def __init__(self, run_dir: Path):
+    def __init__(self, run_dir: Path, rows: list[dict], resumed: bool):
         from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (slow import, only when training)
 
         self.path = run_dir / "progress.csv"
-        self.writer = SummaryWriter(str(run_dir))
+        if resumed:
+            write_csv(self.path, rows)
+        # TensorBoard hides the events of steps >= purge_step, then gets the last row again.
+        purge = (rows[-1]["epoch"] if rows else 0) if resumed else None
+        self.writer = SummaryWriter(str(run_dir), purge_step=purge)
+        if resumed and rows:
+            self.add_scalars(rows[-1])
 
     def log(self, row: dict):
         new = not self.path.exists()
@@ -1113,10 +1247,27 @@ class Logger:
             if new:
                 w.writeheader()
             w.writerow(row)
+        self.add_scalars(row)
+
+    def add_scalars(self, row: dict):
         for k, v in row.items():
             if k != "epoch":
                 self.writer.add_scalar(k, v, row["epoch"])
         self.writer.flush()
+
+    def close(self):
+        self.writer.close()
+
+
+def write_csv(path: Path, rows: list[dict]):
+    """progress.csv holding exactly these rows, written then renamed."""
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        if rows:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    os.replace(tmp, path)
 
 
 def progress(text: str, final: bool = False):
@@ -1143,15 +1294,47 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float):
     os.replace(tmp, path)
 
 
-def evaluate_checkpoint(args: Args, device) -> int:
+def rendering_problem() -> str | None:
+    """Why MuJoCo cannot render on this machine, or None."""
+    backend = os.environ.get("MUJOCO_GL")
+    if backend is None and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        return "no display, and MUJOCO_GL is not set"
+    import mujoco  # noqa: PLC0415 (needed only for --capture-video)
+
+    hook, sys.unraisablehook = sys.unraisablehook, lambda _: None  # a failed Renderer complains when freed
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mujoco.Renderer(fetch5_env.build_model(og.MIN_BLOCKS), 8, 8).close()
+    except Exception as e:  # noqa: BLE001 (any GL failure means: no backend here)
+        return f"MUJOCO_GL={backend}: {type(e).__name__}: {' '.join(str(e).split())[:120]}"
+    finally:
+        gc.collect()
+        sys.unraisablehook = hook
+    return None
+
+
+def claim_name(folder: Path, stem: str) -> Path:
+    """folder/stem.json, or stem_2.json, stem_3.json...: the first name no earlier result holds, created
+    empty (so two evaluations in one folder never overwrite each other)."""
+    for n in itertools.count(1):
+        path = folder / (f"{stem}.json" if n == 1 else f"{stem}_{n}.json")
+        try:
+            path.open("x").close()
+            return path
+        except FileExistsError:
+            continue
+
+
+def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     """--eval-only: the saved agent's SR per class (SPEC §9), printed and saved as JSON beside the
-    checkpoint; with --capture-video, an mp4 per class of its first evaluation episodes."""
-    state = load_checkpoint(args.checkpoint, "--checkpoint")
+    checkpoint, named after it; with --capture-video, an mp4 per class of its first evaluation episodes."""
+    if args.capture_video and rank() == 0 and (why := rendering_problem()):
+        print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
+              "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
+        return 2
     state.pop("buffer", None)  # evaluation needs no replay
-    keep = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "threads", "cuda")
-    saved = Args(**state["args"])
-    args = dataclasses.replace(saved, eval_only=True, checkpoint=args.checkpoint, resume="",
-                               buffer_size=saved.segment_len, **{k: getattr(args, k) for k in keep})  # fmt: skip
+    args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
     learner = Learner(args, device)
     restore(learner, state, args.checkpoint, "--checkpoint")
     learner.rng = np.random.default_rng(args.seed + rank())  # the evaluation's own seed, not the run's
@@ -1161,10 +1344,10 @@ def evaluate_checkpoint(args: Args, device) -> int:
     sr = learner.evaluate(video)
     if rank() > 0:
         return 0
-    out_dir = Path(args.checkpoint).resolve().parent
-    result = dict(checkpoint=str(Path(args.checkpoint).resolve()), epoch=learner.epoch, seed=args.seed,
+    checkpoint = Path(args.checkpoint).resolve()
+    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_epoch{learner.epoch}_seed{args.seed}")
+    result = dict(checkpoint=str(checkpoint), epoch=learner.epoch, seed=args.seed,
                   goals_per_class=args.eval_goals_per_class, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
-    out = out_dir / f"eval_epoch{learner.epoch}_seed{args.seed}.json"
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(result, indent=2))
     os.replace(tmp, out)
@@ -1173,7 +1356,7 @@ def evaluate_checkpoint(args: Args, device) -> int:
     print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, epoch {learner.epoch})")
     print(f"saved {out}")
     for name, frames in (video or {}).items():
-        path = out_dir / "videos" / f"epoch{learner.epoch}_{name}.mp4"
+        path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
         path.parent.mkdir(exist_ok=True)
         write_video(path, frames, fps=1 / learner.env.dt)
         print(f"video {path} ({len(frames)} frames)")
@@ -1181,114 +1364,215 @@ def evaluate_checkpoint(args: Args, device) -> int:
 
 
 # ------------------------------------------------------------------------------------------------
+# Interruptions (plumbing): stop at a cycle boundary, so that a resumed run is the uninterrupted one
+# ------------------------------------------------------------------------------------------------
+class Stopper:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop at the next cycle boundary, where a checkpoint
+    holds everything the rest of the run depends on. During an evaluation (one process) it stops at
+    once, saving the state from before the evaluation. A second signal aborts at once; the last
+    checkpoint stays as it was (saves are atomic)."""
+
+    def __init__(self, tmp: Path):
+        self.tmp, self.requested, self.abortable_now = tmp, False, False
+        for sig in (signal.SIGINT, signal.SIGTERM):  # set even if a parent started us with SIGINT ignored
+            signal.signal(sig, self.handle)
+
+    def handle(self, signum, frame):
+        name = signal.Signals(signum).name
+        if self.requested:
+            self.tmp.unlink(missing_ok=True)
+            os.write(2, f"\naborted by a second {name}: the last checkpoint is kept as it was\n".encode())
+            os._exit(130)
+        self.requested = True
+        if rank() == 0:  # os.write: print() inside a signal handler can meet a print it interrupted
+            os.write(2, f"\n{name}: stopping at the next cycle boundary with a checkpoint (again: abort)\n".encode())
+        if self.abortable_now:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def abortable(self, allowed: bool):
+        """Within this block a stop request interrupts at once (if allowed)."""
+        if allowed and self.requested:
+            raise KeyboardInterrupt
+        self.abortable_now = allowed
+        try:
+            yield
+        finally:
+            self.abortable_now = False
+
+    def agreed(self) -> bool:
+        """Whether any worker was asked to stop: every worker stops at the same cycle."""
+        return bool(all_sum(np.array([float(self.requested)]))[0] > 0)
+
+
+def stop_here(state: dict | None, path: Path) -> int:
+    """Save the checkpoint a resume continues from (worker 0), say how to resume, exit code 130."""
+    if rank() == 0:
+        if state is not None:
+            save_checkpoint(state, path)
+        c = torch.load(path, weights_only=True, map_location="cpu")["counters"] if state is None else state["counters"]
+        print(f"interrupted: checkpoint saved to {path} (epoch {c['epoch']}, cycle {c['cycle']}); "
+              f"continue with --resume {path}", flush=True)  # fmt: skip
+    return 130
+
+
+# ------------------------------------------------------------------------------------------------
 # Main loop
 # ------------------------------------------------------------------------------------------------
-def main(argv=None):
-    args, checkpoint = parse_args(argv), None
-    if args.resume:
-        checkpoint = load_checkpoint(args.resume)
-        saved = Args(**checkpoint["args"])
-        args = dataclasses.replace(saved, n_epochs=args.n_epochs, resume=args.resume)  # the rest as saved
+LOSSES = ("critic_loss", "actor_loss", "q", "target", "entropy")  # fixed columns, NaN before any update
+
+
+def new_tally(env_steps: int) -> dict:
+    """An epoch's running totals for its progress.csv row: segment outcomes, the last cycle's losses,
+    seconds per phase."""
+    return dict(wins=0, tries=0, losses=dict.fromkeys(LOSSES, math.nan), collect=0.0, update=0.0, eval=0.0,
+                env_steps_at_start=env_steps)  # fmt: skip
+
+
+def one_cycle(learner: Learner):
+    """Collect a cycle's segments, learn from them (replay, normalizer, semantic graph), then the cycle's
+    SAC updates (SPEC §5)."""
+    tally, t = learner.tally, time.perf_counter()
+    segments = learner.run_cycle()
+    learner.learn_from(segments)
+    tally["wins"] += sum(bool(s.success) for s in segments)
+    tally["tries"] += len(segments)
+    tally["collect"] += (t_update := time.perf_counter()) - t
+    tally["losses"].update(learner.train())
+    tally["update"] += time.perf_counter() - t_update
+    learner.cycle += 1
+
+
+def finish_epoch(learner: Learner, sr: dict[str, float]) -> dict:
+    """The epoch's progress.csv row (SPEC §10); the learner moves on to the next epoch."""
+    args, tally = learner.args, learner.tally
+    steps = learner.segments * args.segment_len  # all workers'
+    goals, wins, tries = all_sum(np.array([learner.goals, tally["wins"], tally["tries"]], dtype=np.float64))
+    seconds = tally["collect"] + tally["update"] + tally["eval"]
+    row = dict(
+        epoch=learner.epoch,
+        goals=int(goals),
+        segments=learner.segments,
+        env_steps=steps,
+        global_sr=sr["global"],
+        train_success=wins / max(1, tries),
+        **{f"sr_{k}": sr[k] for k in learner.classes},
+        **{f"encounters_{k}": v for k, v in learner.encounters().items()},
+        **learner.sampler_stats(),
+        agent_nodes=learner.graph.n_nodes,
+        agent_edges=learner.graph.n_edges,
+        sr_classes=len(learner.graph.sr),
+        **tally["losses"],
+        time_collect=tally["collect"],
+        time_update=tally["update"],
+        time_eval=tally["eval"],
+        time_plan_and_graph=learner.plan_seconds,
+        steps_per_second=(steps - tally["env_steps_at_start"]) / max(seconds, 1e-9),
+    )
+    row = plain(row)
+    learner.rows.append(row)
+    learner.epoch, learner.cycle = learner.epoch + 1, 0
+    learner.tally, learner.plan_seconds = new_tally(steps), 0.0
+    learner.stats.clear()
+    return row
+
+
+def train(learner: Learner, logger: Logger | None, ckpt_path: Path, stopper: Stopper) -> int:
+    """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row
+    (in that order: a row is never logged unless a checkpoint holds it)."""
+    args = learner.args
+    while learner.epoch < args.n_epochs:
+        while learner.cycle < args.n_cycles:
+            one_cycle(learner)
+            if learner.cycle == 1 or learner.cycle % max(1, args.n_cycles // 10) == 0:
+                loss = learner.tally["losses"]["critic_loss"]
+                progress(f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
+                         f"nodes {learner.graph.n_nodes:,} | critic loss {loss:.3f}")  # fmt: skip
+            if stopper.agreed():
+                return stop_here(learner.state_dict() if rank() == 0 else None, ckpt_path)
+        before_eval = learner.state_dict() if world() == 1 else None  # cheap: views of the live tensors
+        t = time.perf_counter()
+        try:
+            with stopper.abortable(allowed=before_eval is not None):
+                sr = learner.evaluate()
+        except KeyboardInterrupt:
+            return stop_here(before_eval, ckpt_path)
+        learner.tally["eval"] = time.perf_counter() - t
+        row = finish_epoch(learner, sr)
+        if logger is not None:
+            save_checkpoint(learner.state_dict(), ckpt_path)
+            logger.log(row)
+        per_class = " ".join(f"{k} {sr[k]:.2f}" for k in learner.classes)
+        progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
+                 f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
+                 final=True)  # fmt: skip
+        if stopper.agreed():
+            return stop_here(None, ckpt_path)
+    return 0
+
+
+def start_run(args: Args, state: dict | None, device) -> int:
+    """A new run folder, or the checkpoint's when resuming; then train."""
+    if state is None:
+        run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
+        if rank() == 0:
+            try:
+                run_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                print(f"error: --runs-dir {args.runs_dir!r}: cannot create {str(run_dir)!r}: {e}", file=sys.stderr)
+                return 2
+            (run_dir / "config.json").write_text(json.dumps(dict(dataclasses.asdict(args), workers=world()), indent=2))
+    else:
+        run_dir = Path(args.resume).resolve().parent
+    learner = Learner(args, device)
+    if state is not None:
+        restore(learner, state, args.resume, "--resume")
+        progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
+    logger = Logger(run_dir, learner.rows, resumed=state is not None) if rank() == 0 else None
+    progress(f"run folder {run_dir} | {args.n_blocks} blocks | VDS goal sampler | {world()} worker(s) on "
+             f"{device}", final=True)  # fmt: skip
+    try:
+        return train(learner, logger, run_dir / "checkpoint.pt", Stopper(run_dir / "checkpoint.pt.tmp"))
+    finally:
+        if logger is not None:
+            logger.close()
+
+
+def main(argv=None) -> int:
+    args, state = parse_args(argv), None
+    if args.resume or args.eval_only:
+        flag = "--resume" if args.resume else "--checkpoint"
+        state = load_checkpoint(args.resume or args.checkpoint, flag)
+        args = args_from_checkpoint(args, given_flags(argv), state, flag)
+        if args.resume and state["counters"]["epoch"] >= args.n_epochs:
+            print(f"nothing to do: {args.resume} has finished epoch {state['counters']['epoch'] - 1} "
+                  f"(--n-epochs {args.n_epochs}); give a larger --n-epochs to train on")  # fmt: skip
+            return 0
     if args.threads:
         torch.set_num_threads(args.threads)
     device = init_workers(args)  # under torchrun: this worker's device, and the job joined
     torch.manual_seed(args.seed + rank())
-    if args.eval_only:
-        return evaluate_checkpoint(args, device)
-    main_worker = rank() == 0  # worker 0 logs and saves checkpoints (SPEC §11)
-    if args.resume:
-        run_dir = Path(args.resume).resolve().parent
-    else:
-        run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
-        if main_worker:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            config = dict(dataclasses.asdict(args), workers=world())
-            (run_dir / "config.json").write_text(json.dumps(config, indent=2))
-    learner = Learner(args, device)
-    if checkpoint is not None:
-        restore(learner, checkpoint, args.resume, "--resume")
-        progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
-    logger = Logger(run_dir) if main_worker else None
-    ckpt_path = run_dir / "checkpoint.pt"
-    progress(
-        f"run folder {run_dir} | {args.n_blocks} blocks | VDS goal sampler | {world()} worker(s) on {device}",
-        final=True,
-    )
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, interrupt)  # a scheduler's stop saves a checkpoint, as Ctrl-C does
     try:
-        while learner.epoch < args.n_epochs:
-            times, reached = dict(collect=0.0, update=0.0, eval=0.0), []
-            info = dict.fromkeys(("critic_loss", "actor_loss", "q", "target", "entropy"), math.nan)  # fixed columns
-            learner.stats.clear()
-            learner.plan_seconds = 0.0
-            epoch_start, steps_start = time.perf_counter(), learner.segments * args.segment_len
-            while learner.cycle < args.n_cycles:
-                t = time.perf_counter()
-                segments = learner.run_cycle()
-                learner.learn_from(segments)
-                reached += [s.success for s in segments]
-                times["collect"] += time.perf_counter() - t
-                t = time.perf_counter()
-                info.update(learner.train())
-                times["update"] += time.perf_counter() - t
-                learner.cycle += 1
-                if learner.cycle == 1 or learner.cycle % max(1, args.n_cycles // 10) == 0:
-                    progress(
-                        f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
-                        f"nodes {learner.graph.n_nodes:,} | critic loss {info.get('critic_loss', 0):.3f}"
-                    )
-            t = time.perf_counter()
-            sr = learner.evaluate()
-            times["eval"] = time.perf_counter() - t
-            steps = learner.segments * args.segment_len  # all workers'
-            elapsed = time.perf_counter() - epoch_start
-            goals, wins, tries = all_sum(np.array([learner.goals, sum(reached), len(reached)], dtype=np.float64))
-            row = dict(
-                epoch=learner.epoch,
-                goals=int(goals),
-                segments=learner.segments,
-                env_steps=steps,
-                global_sr=sr["global"],
-                train_success=wins / max(1, tries),
-                **{f"sr_{k}": sr[k] for k in learner.classes},
-                **{f"encounters_{k}": v for k, v in learner.encounters().items()},
-                **learner.sampler_stats(),
-                agent_nodes=learner.graph.n_nodes,
-                agent_edges=learner.graph.n_edges,
-                sr_classes=len(learner.graph.sr),
-                **{k: v for k, v in info.items()},
-                time_collect=times["collect"],
-                time_update=times["update"],
-                time_eval=times["eval"],
-                time_plan_and_graph=learner.plan_seconds,
-                steps_per_second=(steps - steps_start) / elapsed,
-            )
-            learner.epoch, learner.cycle = learner.epoch + 1, 0
-            if main_worker:
-                logger.log(row)
-                save_checkpoint(learner, ckpt_path)
-            per_class = " ".join(f"{k} {sr[k]:.2f}" for k in learner.classes)
-            progress(
-                f"epoch {row['epoch']:3d} | steps {steps:,} | SR {sr['global']:.3f} | {per_class} | "
-                f"{row['steps_per_second']:.0f} steps/s | {elapsed:.0f} s",
-                final=True,
-            )
-    except KeyboardInterrupt:
-        if main_worker:
-            save_checkpoint(learner, ckpt_path)
-            print(
-                f"\ninterrupted: checkpoint saved to {ckpt_path} (epoch {learner.epoch}, cycle {learner.cycle}); "
-                f"continue with --resume {ckpt_path}"
-            )
-        return 130
-    if dist.is_initialized():
-        dist.destroy_process_group()
-    return 0
+        return evaluate_checkpoint(args, state, device) if args.eval_only else start_run(args, state, device)
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def leave(code: int):
+    """Exit with code. A distributed worker leaves through os._exit, its outputs flushed and closed:
+    at interpreter exit, gloo's worker thread could abort the process (SIGABRT) after all the work."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        exit_code = main()
+    except KeyboardInterrupt:
+        print("interrupted (nothing to save yet)", file=sys.stderr)
+        exit_code = 130
+    leave(exit_code)

@@ -5,6 +5,8 @@ import csv
 import itertools
 import json
 import math
+import os
+import random
 import re
 import signal
 import subprocess
@@ -475,13 +477,50 @@ def test_ctrl_c_or_sigterm_saves_a_checkpoint_that_resumes(tmp_path, sig):
         (["--batch-size", "many"], "'many'"),
         (["--eval-only", "--checkpoint", "/nonexistent/run/checkpoint.pt"], "/nonexistent/run/checkpoint.pt"),
         (["--video-episodes", "-2"], "-2"),
+        (["--seed", "-1"], "-1"),
+        (["--seed", str(2**64 + 1)], str(2**64 + 1)),
+        (["--alpha", "nan"], "nan"),
+        (["--alpha", "inf"], "inf"),
+        (["--alpha", "-1"], "-1"),
+        (["--lr-actor", "nan"], "nan"),
+        (["--lr-actor", "inf"], "inf"),
+        (["--lr-critic", "-1"], "-1"),
+        (["--eval-goals-per-class", "0"], "0"),
+        (["--batch-size", "100000"], "100000"),
+        (["--k-shortest", "0"], "0"),
+        (["--stable-steps", "0"], "0"),
+        (["--buffer-size", "1"], "1"),
+        (["--capture-video"], "--capture-video"),
+        (["--exp-name", "../../x"], "'../../x'"),
+        (["--max-path-len", "1"], "1"),
+        (["--checkpoint", "x.pt"], "x.pt"),
     ],
 )
 def test_bad_command_line_values_exit_2_naming_the_value(argv, named, capsys):
     with pytest.raises(SystemExit) as e:
         gh.parse_args(argv)
     assert e.value.code == 2
-    assert named in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert named in err and len(err.strip().splitlines()) == 1 and "Args(" not in err
+
+
+@pytest.mark.parametrize("argv", [["--seed", "-1"], ["--alpha", "nan"], ["--exp-name", "../../x"]])
+def test_a_bad_value_writes_nothing(tmp_path, argv):
+    out = run_script(*argv, runs_dir=tmp_path / "runs")
+    assert out.returncode == 2 and not (tmp_path / "runs").exists() and not (tmp_path.parent / "x").exists()
+
+
+def test_an_unwritable_runs_dir_exits_2_naming_it(tmp_path):
+    (tmp_path / "file").write_text("")  # a file where a folder should be: even root cannot write under it
+    out = run_script(*TINY, runs_dir=tmp_path / "file" / "runs")
+    assert out.returncode == 2 and "--runs-dir" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_help_shows_every_default():
+    out = subprocess.run([sys.executable, "gangstr_hme.py", "--help"], cwd=ROOT, capture_output=True, text=True)
+    text = " ".join(out.stdout.split())
+    for name, value in [("sp-ratio", "0.0"), ("batch-size", "256"), ("her-strategy", "'final'"), ("cuda", "False")]:
+        assert re.search(rf"--{name}\b.*?\(default: {re.escape(value)}\)", text), name
 
 
 @pytest.mark.parametrize("content", [b"not a checkpoint", b""])
@@ -490,6 +529,64 @@ def test_an_unreadable_checkpoint_exits_2_with_one_line(tmp_path, content):
     bad.write_bytes(content)
     out = run_script("--resume", str(bad), runs_dir=tmp_path)
     assert out.returncode == 2 and str(bad) in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def saved_learner(path: Path, module=gh, **fields) -> dict:
+    """A fresh 3-block learner's checkpoint at path (no training needed to test loading rules)."""
+    learner = module.Learner(module.Args(n_blocks=3, buffer_size=400, runs_dir=str(path.parent), **fields), "cpu")
+    state = learner.state_dict()
+    module.save_checkpoint(state, path)
+    return state
+
+
+@pytest.mark.parametrize(
+    "content, says",
+    [
+        (b"hello, I am a text file\n", "not a checkpoint"),
+        (None, "not a checkpoint of this project"),
+        ("lp", "a checkpoint of lp_baseline.py, not of gangstr_hme.py"),
+        ("old env", "the environment changed"),
+    ],
+    ids=["text", "other torch file", "other script", "other environment"],
+)
+def test_a_file_that_is_not_this_scripts_checkpoint_gets_one_line_saying_what_it_is(tmp_path, content, says):
+    path = tmp_path / "file.pt"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is None:
+        torch.save({"weights": torch.zeros(3)}, path)
+    elif content == "lp":
+        import lp_baseline  # noqa: PLC0415
+
+        saved_learner(path, lp_baseline)
+    else:
+        state = saved_learner(path)
+        torch.save({**state, "env_version": state["env_version"] - 1}, path)
+    for argv in (["--resume", str(path)], ["--eval-only", "--checkpoint", str(path)]):
+        out = run_script(*argv, runs_dir=tmp_path)
+        assert out.returncode == 2 and says in out.stderr and str(path) in out.stderr, out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("mode", ["--resume", "--eval-only"])
+def test_flags_that_contradict_the_checkpoint_exit_2_naming_each(tmp_path, mode):
+    state = saved_learner(tmp_path / "checkpoint.pt", sp_ratio=0.3)
+    state["counters"]["epoch"] = 1  # a finished epoch: resuming to --n-epochs 1 has nothing to do
+    gh.save_checkpoint(state, tmp_path / "checkpoint.pt")
+    where = ["--resume", str(tmp_path / "checkpoint.pt"), "--n-epochs", "1"] if mode == "--resume" else [
+        "--eval-only", "--checkpoint", str(tmp_path / "checkpoint.pt"), "--eval-goals-per-class", "1"]  # fmt: skip
+    out = run_script(*where, "--n-blocks", "5", "--sp-ratio", "0.2", "--threads", "1", runs_dir=tmp_path)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
+    assert "--n-blocks 5 (checkpoint: 3)" in out.stderr and "--sp-ratio 0.2 (checkpoint: 0.3)" in out.stderr
+    same = run_script(*where, "--n-blocks", "3", "--sp-ratio", "0.3", "--threads", "1", runs_dir=tmp_path)
+    assert same.returncode == 0, same.stderr
+
+
+def test_resume_with_nothing_left_to_train_says_so(tmp_path):
+    assert run_script("--n-blocks", "3", *TINY, runs_dir=tmp_path).returncode == 0
+    (run,) = tmp_path.iterdir()
+    out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "1", runs_dir=tmp_path)
+    assert out.returncode == 0 and "nothing to do" in out.stdout and len(read_rows(run)) == 1
 
 
 def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
@@ -535,11 +632,11 @@ def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path
     classes = list(og.evaluation_classes(3))
     for name in classes:
         assert f"{name:>6}  SR " in out.stdout
-    result = json.loads((run / "eval_epoch1_seed4.json").read_text())
+    result = json.loads((run / "eval_checkpoint_epoch1_seed4.json").read_text())
     assert set(result["sr"]) == {*classes, "global"} and result["goals_per_class"] == 2
     assert result["sr"]["global"] == pytest.approx(np.mean([result["sr"][k] for k in classes]))
     for name in classes:
-        video = run / "videos" / f"epoch1_{name}.mp4"
+        video = run / "videos" / f"eval_checkpoint_epoch1_seed4_{name}.mp4"
         frames = int(re.search(rf"{video.name} \((\d+) frames\)", out.stdout).group(1))
         reader = imageio_ffmpeg.read_frames(str(video))
         meta = next(reader)
@@ -547,3 +644,25 @@ def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path
         assert meta["size"] == (480, 480) and meta["fps"] == pytest.approx(25.0)
         assert len(decoded) == frames and frames % 10 == 0 and 10 <= frames <= 10 * 9  # whole 10-step segments
         assert decoded[0].size == 480 * 480 * 3 and decoded[0].std() > 10  # a picture, not a blank
+
+
+def test_a_second_evaluation_of_a_checkpoint_is_saved_beside_the_first_never_over_it(tmp_path):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--eval-goals-per-class", "1", "--threads", "1"]
+    for _ in range(2):
+        assert run_script(*argv, runs_dir=tmp_path).returncode == 0
+    assert sorted(p.name for p in tmp_path.glob("eval_*")) == ["eval_agent_epoch0_seed0.json",
+                                                               "eval_agent_epoch0_seed0_2.json"]  # fmt: skip
+
+
+def test_capture_video_without_a_display_or_gl_backend_exits_2_saying_what_to_install(tmp_path):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "PYOPENGL_PLATFORM")}
+    cmd = [sys.executable, "gangstr_hme.py", "--eval-only", "--checkpoint", str(tmp_path / "agent.pt"),
+           "--capture-video", "--runs-dir", str(tmp_path)]  # fmt: skip
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert "libosmesa6" in out.stderr and "MUJOCO_GL=osmesa" in out.stderr
+    assert not list(tmp_path.glob("eval_*")) and not (tmp_path / "videos").exists()
