@@ -329,18 +329,23 @@ def test_finger_boxes_sit_8mm_inward_with_fetchs_contact_and_limit_parameters():
 # ------------------------------------------------------------------------------------------------
 # The grip site sits GRIP_OFFSET below the gripper body that follows the clipped mocap; 2 mm covers
 # the weld's lag and overshoot (0.5 mm measured over corner, random and bang-bang sequences).
-GRIP_LOW = fe.WORKSPACE_LOW - (0, 0, fe.GRIP_OFFSET) - 0.002
-GRIP_HIGH = fe.WORKSPACE_HIGH - (0, 0, fe.GRIP_OFFSET) + 0.002
+def grip_box():
+    """(low, high) corners the grip site must stay within (a function: benchmarks/bench_grasp.py imports
+    this file's controllers against older envs without a workspace)."""
+    return fe.WORKSPACE_LOW - (0, 0, fe.GRIP_OFFSET) - 0.002, fe.WORKSPACE_HIGH - (0, 0, fe.GRIP_OFFSET) + 0.002
+
+
 CORNERS = [np.r_[x, y, z, 0.0] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
 
 
 def assert_stays_in_the_workspace(actions, seed):
     env = fe.FetchManipulateEnv(3)
     env.reset(seed=seed)
+    low, high = grip_box()
     for a in actions:
         obs, *_ = env.step(a)
         grip = obs["observation"][:3]
-        assert np.all(grip >= GRIP_LOW) and np.all(grip <= GRIP_HIGH), f"grip site at {grip}"
+        assert np.all(grip >= low) and np.all(grip <= high), f"grip site at {grip}"
         assert env.observation_space.contains(obs)
     return grip
 
@@ -349,7 +354,7 @@ def assert_stays_in_the_workspace(actions, seed):
 def test_400_steps_toward_a_corner_stop_the_gripper_at_that_corner_of_the_workspace(corner):
     a = CORNERS[corner]
     grip = assert_stays_in_the_workspace([a] * 400, seed=corner)
-    wall = np.where(a[:3] > 0, GRIP_HIGH, GRIP_LOW)
+    wall = np.where(a[:3] > 0, *grip_box()[::-1])
     # Reaches its corner, except that going down the table stops it first.
     np.testing.assert_allclose(grip[:2], wall[:2], atol=0.003)
     assert abs(grip[2] - wall[2]) < 0.003 or (a[2] < 0 and grip[2] > fe.TABLE_Z)
