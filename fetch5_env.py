@@ -27,12 +27,18 @@ from gymnasium import spaces
 
 import oracle_graph as og
 
-ENV_VERSION = 2  # bump when physics or observations change: checkpoints of another version are refused
+# Bump ENV_VERSION whenever the physics or the observations change (what a policy sees or does): the
+# training scripts store it in their checkpoints and refuse one trained on another version.
+# 1: first release; 2: Fetch's finger offset, contact and limit parameters, mat2euler angles, workspace.
+ENV_VERSION = 2
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "fetch_manipulate.xml"
 N_SUBSTEPS = 20  # 20 x 0.002 s physics steps per control step (SPEC §3)
 MAX_EPISODE_STEPS = 40  # one segment (SPEC §5)
 ACTION_SCALE = 0.05  # metres of mocap displacement per unit action (Fetch's pos_ctrl *= 0.05)
 GRIP_OFFSET = 0.02  # grip site, along the gripper's pointing axis (local +x)
+# The arm's reach, as a box the mocap target is clipped to (SPEC §3): never binding above the table,
+# but no action sequence takes the gripper out of the observation bounds.
+WORKSPACE_LOW, WORKSPACE_HIGH = np.array([1.0, 0.3, 0.38]), np.array([1.6, 1.2, 0.95])
 DOWN_QUAT = np.array([1.0, 0.0, 1.0, 0.0]) / np.sqrt(2.0)  # local +x points to world -z
 INITIAL_GRIP_POS = np.array([1.3419, 0.7491, 0.5347])
 BLOCK_HALF = 0.025
@@ -41,6 +47,7 @@ SPAWN_RANGE = 0.15  # blocks spawn in initial grip xy +- 0.15
 MIN_SPAWN_DIST = np.sqrt(2.0) * 2 * BLOCK_HALF  # no two blocks closer than a diagonal at reset
 OBS_BOUND = 10.0
 CLOSE_DIST = 0.09  # close(i, j) iff |p_i - p_j| < 0.09
+GIMBAL_EPS = 4 * np.finfo(np.float64).eps  # cos(pitch) below this: gimbal lock (gym-robotics' _EPS4)
 ABOVE_XY, ABOVE_DZ = 0.05, (0.03, 0.06)  # i on j iff |xy_i - xy_j| < 0.05 and 0.03 < z_i - z_j < 0.06
 
 
@@ -70,12 +77,24 @@ def semantic_config(positions: np.ndarray) -> np.ndarray:
 
 
 def euler_from_mat(mat: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Static-xyz Euler angles (roll, pitch, yaw) of rotation matrices (..., 9), as Fetch's mat2euler."""
+    """Euler angles (roll, pitch, yaw) of row-major rotation matrices (..., 9), in gym-robotics'
+    `rotations.mat2euler` convention (SPEC §3): rotating axes x, then y, then z, so that
+    R = Rx(roll) @ Ry(pitch) @ Rz(yaw); pitch in [-pi/2, pi/2], roll and yaw in [-pi, pi].
+
+    At gimbal lock (pitch = +-pi/2, when only roll + yaw or yaw - roll is defined) roll is 0, as there.
+    """
     m = np.asarray(mat)
     out = np.empty(m.shape[:-1] + (3,)) if out is None else out
-    np.arctan2(m[..., 7], m[..., 8], out=out[..., 0])
-    np.arctan2(-m[..., 6], np.hypot(m[..., 7], m[..., 8]), out=out[..., 1])  # asin(-m6) without clipping
-    np.arctan2(m[..., 3], m[..., 0], out=out[..., 2])
+    # R[0, 2] = sin(pitch); R[1, 2] = -sin(roll) cos(pitch), R[2, 2] = cos(roll) cos(pitch);
+    # R[0, 1] = -cos(pitch) sin(yaw), R[0, 0] = cos(pitch) cos(yaw).
+    cos_pitch = np.hypot(m[..., 5], m[..., 8])
+    np.arctan2(-m[..., 5], m[..., 8], out=out[..., 0])
+    np.arctan2(m[..., 2], cos_pitch, out=out[..., 1])  # asin(R[0, 2]) without clipping
+    np.arctan2(-m[..., 1], m[..., 0], out=out[..., 2])
+    locked = cos_pitch <= GIMBAL_EPS
+    if locked.any():  # a block never gets here in practice; a test does
+        out[..., 0] = np.where(locked, 0.0, out[..., 0])
+        out[..., 2] = np.where(locked, np.arctan2(m[..., 3], m[..., 4]), out[..., 2])
     return out
 
 
@@ -189,8 +208,10 @@ class FetchManipulateEnv(gym.Env):
         if not np.isfinite(a).all():
             raise ValueError(f"action must be finite, got {a.tolist()}")
         a = np.minimum(np.maximum(a, -1.0), 1.0)
-        # Snap the mocap to the gripper body, then displace it (SPEC §3); orientation stays pointing down.
-        self.data.mocap_pos[0] = self._grip_qpos + ACTION_SCALE * a[:3]
+        # Snap the mocap to the gripper body, then displace it within the workspace (SPEC §3); orientation
+        # stays pointing down.
+        target = self._grip_qpos + ACTION_SCALE * a[:3]
+        np.minimum(np.maximum(target, WORKSPACE_LOW, out=target), WORKSPACE_HIGH, out=self.data.mocap_pos[0])
         self.data.mocap_quat[0] = DOWN_QUAT
         # Relative position control of the fingers: a[3] > 0 opens; the actuators' ctrlrange clips.
         self.data.ctrl[:] = self._finger_qpos + a[3]
