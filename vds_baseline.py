@@ -1148,7 +1148,7 @@ class Learner:
 # ------------------------------------------------------------------------------------------------
 SCRIPT = Path(__file__).stem  # a checkpoint names the script that wrote it
 ENV_VERSION = fetch5_env.ENV_VERSION  # ... and the environment it was trained in
-CHECKPOINT_KEYS = ("script", "env_version", "args", "counters", "actor", "critic")
+CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
 
 
 def plain(d: dict) -> dict:
@@ -1172,11 +1172,12 @@ def load_checkpoint(path: str, flag: str = "--resume") -> dict:
         checkpoint_error(flag, path, f"not a checkpoint ({type(e).__name__}: {e})")
     if not isinstance(state, dict) or not all(k in state for k in CHECKPOINT_KEYS):
         checkpoint_error(flag, path, "not a checkpoint of this project (a torch file without its keys)")
-    if state["script"] != SCRIPT:
+    version = state.get("env_version", 1)  # checkpoints older than ENV_VERSION: version 1
+    if version != ENV_VERSION:
+        checkpoint_error(flag, path, f"trained in environment version {version}, but fetch5_env.py is now version "
+                                     f"{ENV_VERSION} (the environment changed): retrain")  # fmt: skip
+    if state.get("script", SCRIPT) != SCRIPT:
         checkpoint_error(flag, path, f"a checkpoint of {state['script']}.py, not of {SCRIPT}.py: use that script")
-    if state["env_version"] != ENV_VERSION:
-        checkpoint_error(flag, path, f"trained in environment version {state['env_version']}, but fetch5_env.py is "
-                                     f"now version {ENV_VERSION} (the environment changed): retrain")  # fmt: skip
     try:
         Args(**state["args"])
     except TypeError as e:
