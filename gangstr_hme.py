@@ -842,6 +842,13 @@ class SocialPartner:
         return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
 
 
+def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The internalization buffer is a set of distinct (frontier, beyond) pairs (SPEC §7), kept as a
+    list in first-stored order so that a seeded draw picks the same pair on every worker: the kept
+    pairs, then those of `new` (every worker's, in rank order) not already in."""
+    return list(dict.fromkeys([*kept, *new]))
+
+
 # ------------------------------------------------------------------------------------------------
 # Rollouts: segments, paths and cycles (SPEC §5, §6)
 # ------------------------------------------------------------------------------------------------
@@ -940,7 +947,7 @@ class Learner:
     # --- the goal sampler: HME (SPEC §7) -----------------------------------------------------------
     def init_goal_sampler(self):
         self.sp = SocialPartner(self.args.n_blocks)
-        self.internalization_buffer: list[tuple[int, int]] = []  # failed (frontier, beyond) proposals
+        self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
 
     def run_cycle(self) -> list[Segment]:
         """One cycle's segments (SPEC §7): social with probability sp_ratio; otherwise a rehearsal of
@@ -957,7 +964,7 @@ class Learner:
             segments = self.autotelic_cycle(self.args.n_segments)
         # Workers merge the pairs they stored this cycle: every worker rehearses all of them (SPEC §11).
         new = all_gather_rows(np.array(self.internalization_buffer[known:], dtype=np.int64).reshape(-1, 2))
-        self.internalization_buffer[known:] = [tuple(p) for p in new.tolist()]
+        self.internalization_buffer = merge_pairs(self.internalization_buffer[:known], list(map(tuple, new.tolist())))
         return segments
 
     def autotelic_goal(self) -> int:
@@ -981,36 +988,32 @@ class Learner:
     def social_cycle(self) -> list[Segment]:
         """Reset; the social partner proposes a frontier goal and the agent goes there; then goals just
         beyond, chained while they succeed; a failed one is stored for rehearsal. When the partner has
-        nothing to propose, the rest of the cycle is autotelic (SPEC §7)."""
+        nothing to propose, the rest of the cycle is autotelic. The ablations keep only the frontier leg
+        or only a beyond goal (SPEC §7; paper Algorithm 1)."""
         a, segments = self.args, []
         while len(segments) < a.n_segments:
             self.env.reset()
             self.goals += 1
             here, left = current_config(self.env), a.n_segments - len(segments)
             frontier = self.sp.frontier_goal(self.graph, here, self.rng)
-            if a.strategy == "frontier":  # the frontier goal only, pursued like the agent's own goals
-                if frontier is None:
-                    break
-                self.propose("frontier", frontier)
-                segments += self.pursue(frontier, left, explore=True, deterministic=False)[0]
-            elif a.strategy == "beyond" and frontier is not None:  # the frontier stays hidden
-                beyond = self.sp.beyond_goal(self.graph, frontier, self.rng)
-                self.propose("beyond", beyond)
-                segs, reached = self.pursue(beyond, left, explore=True, deterministic=False)
-                segments += segs
-                if not reached:
-                    self.internalization_buffer.append((frontier, beyond))
-            elif frontier is None:  # no reachable frontier: goals beyond the current config, directly
-                segs = self.beyond_goals(here, left)
-                if not segs:
-                    break
-                segments += segs
-            else:
-                self.propose("frontier", frontier)
-                segs, arrived = self.go_to_frontier(frontier, left)
-                segments += segs
+            base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
+            if a.strategy == "frontier-and-beyond":
+                segs, arrived = [], True
+                if frontier is not None:
+                    self.propose("frontier", frontier)
+                    segs, arrived = self.go_to_frontier(frontier, left)
                 if arrived:
-                    segments += self.beyond_goals(frontier, a.n_segments - len(segments))
+                    segs += self.beyond_goals(base, left - len(segs))
+            elif a.strategy == "frontier":  # --strategy frontier: go there deterministically, then reset
+                segs = []
+                if frontier is not None:
+                    self.propose("frontier", frontier)
+                    segs = self.go_to_frontier(frontier, left)[0]
+            else:  # --strategy beyond: the frontier stays hidden; one goal beyond it, retried until reached
+                segs = self.attempt_until_reached(self.sp.beyond_goal(self.graph, base, self.rng), left)
+            if not segs:
+                break  # nothing to propose (or, --strategy frontier, already there): the rest is autotelic
+            segments += segs
         return segments + self.autotelic_cycle(a.n_segments - len(segments))
 
     def beyond_goals(self, start: int, budget: int) -> list[Segment]:
@@ -1026,10 +1029,29 @@ class Learner:
             segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks), self.args,
                                         deterministic=False))  # fmt: skip
             if not segments[-1].success:
-                self.internalization_buffer.append((start, beyond))
+                self.internalize(start, beyond)
                 break
             start = beyond
         return segments
+
+    def attempt_until_reached(self, beyond: int | None, budget: int) -> list[Segment]:
+        """--strategy beyond (SPEC §7): one beyond goal attempted directly from where the agent is, with
+        the stochastic policy, segment after segment without reset until reached or the budget is
+        spent. Nothing is stored."""
+        segments = []
+        if beyond is not None:
+            self.propose("beyond", beyond)
+        while beyond is not None and len(segments) < budget:
+            segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks), self.args,
+                                        deterministic=False))  # fmt: skip
+            if segments[-1].success:
+                break
+        return segments
+
+    def internalize(self, frontier: int, beyond: int):
+        """Store a failed pair once, however often it fails (SPEC §7): rehearsals draw distinct pairs."""
+        if (frontier, beyond) not in self.internalization_buffer:
+            self.internalization_buffer.append((frontier, beyond))
 
     def rehearsal_cycle(self) -> list[Segment]:
         """Internalization (SPEC §7): reset, draw a stored (frontier, beyond) pair, go to the frontier
@@ -1066,7 +1088,7 @@ class Learner:
             social_share=st["social_cycles"] / cycles,
             rehearsal_share=st["rehearsal_cycles"] / cycles,
             stepping_stones=len(self.sp.stepping_stones(self.graph)),
-            internalization_size=len(self.internalization_buffer),
+            internalized_pairs=len(self.internalization_buffer),
             **{f"sp_frontier_{k}": st[f"sp_frontier_{k}"] for k in names},
             **{f"sp_beyond_{k}": st[f"sp_beyond_{k}"] for k in names},
         )
@@ -1075,7 +1097,7 @@ class Learner:
         return dict(internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2))
 
     def load_sampler_state(self, s: dict):
-        self.internalization_buffer = [tuple(p) for p in s["internalization"].tolist()]
+        self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
 
     # --- learning -------------------------------------------------------------------------------
     def summed_stats(self, keys: list[str]) -> dict[str, float]:

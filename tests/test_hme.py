@@ -279,7 +279,7 @@ def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
     assert out.returncode == 0, out.stderr
     (run_dir,) = tmp_path.iterdir()
     (row,) = csv.DictReader((run_dir / "progress.csv").open())
-    for column in ("stepping_stones", "internalization_size", "social_share", "sp_frontier_C1", "sp_beyond_S2"):
+    for column in ("stepping_stones", "internalized_pairs", "social_share", "sp_frontier_C1", "sp_beyond_S2"):
         assert column in row
     if "--internalization-prob" in flags:
         assert float(row["rehearsal_share"]) == 0.0
