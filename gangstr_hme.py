@@ -1076,8 +1076,8 @@ class Learner:
         self.stats[f"sp_{kind}_{name or 'other'}"] += 1
 
     def sampler_stats(self) -> dict:
-        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the
-        internalization buffer, and the partner's proposals per class (frontier and beyond)."""
+        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the number
+        of distinct internalized pairs, and the partner's proposals per class (frontier and beyond)."""
         names = [*self.classes, "other"]
         proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
         cycles = ["cycles", "social_cycles", "rehearsal_cycles", "autotelic_goals", "autotelic_reached"]
