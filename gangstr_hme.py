@@ -608,6 +608,9 @@ class SAC:
 # ------------------------------------------------------------------------------------------------
 # The agent's semantic graph and goal decomposition (SPEC §6; paper Section 3.3, appendix)
 # ------------------------------------------------------------------------------------------------
+YEN_PATHS_PER_SHAPE = 4  # Yen's work bound in k_shortest_paths: at most 4k paths examined for k shapes
+
+
 class SemanticGraph:
     """Configs the agent has met (as int masks, see oracle_graph) linked by small steps it has made.
 
@@ -683,41 +686,85 @@ class SemanticGraph:
         return self.masks[rng.integers(self.n_nodes)] if self.masks else None
 
     # --- path planning ------------------------------------------------------------------------
-    def safest_path(self, start: int, goal: int) -> list[int] | None:
-        """Path maximising the product of edge SRs: Dijkstra (binary heap, early exit) on -log SR."""
+    def safest_path(self, start: int, goal: int, rng: np.random.Generator) -> list[int] | None:
+        """Path maximising the product of edge SRs: Dijkstra (binary heap, early exit) on -log SR.
+        Equally safe paths are equally likely (SPEC §6): a beginner's edges all sit at the prior, so
+        every path of the same length ties, and always taking the same one would repeat its mistakes."""
         s, t = self.node_of.get(start), self.node_of.get(goal)
         if s is None or t is None or s == t:
             return None
         cost = (-np.log(np.clip(self.sr, 1e-12, 1.0))).tolist()
-        dist, prev, heap = [math.inf] * self.n_nodes, [-1] * self.n_nodes, [(0.0, s)]
+        dist, order, heap = [math.inf] * self.n_nodes, {}, [(0.0, s)]
         dist[s] = 0.0
         succ, succ_class = self.succ, self.succ_class
         while heap:
             d, u = heapq.heappop(heap)
-            if u == t:
-                return [self.masks[i] for i in self._trace(prev, t)]
             if d > dist[u]:
                 continue  # a stale heap entry
+            order[u] = len(order)  # settled: dist[u] is final
+            if u == t:
+                return [self.masks[i] for i in self._sample_tight_path(s, t, dist, order, cost, rng)]
             for v, c in zip(succ[u], succ_class[u]):  # noqa: B905 (equal lengths by construction; hot loop)
                 nd = d + cost[c]
                 if nd < dist[v]:
-                    dist[v], prev[v] = nd, u
+                    dist[v] = nd
                     heapq.heappush(heap, (nd, v))
         return None
 
+    def _sample_tight_path(self, s: int, t: int, dist: list, order: dict, cost: list, rng) -> list[int]:
+        """One of the optimal s -> t paths of a finished Dijkstra, uniformly. An edge u -> v is on an
+        optimal path when u was settled before v and dist[u] + cost = dist[v] (up to 1e-9: costs are
+        float sums in different orders); all of them are settled when t is. Counting the optimal paths
+        into each node, then walking back from t choosing each predecessor in proportion to its count,
+        gives every optimal path the same chance. Only the nodes on optimal paths are visited."""
+        indptr, tails, classes = self._csr(1)
+        preds, todo = {}, [t]
+        while todo:  # the optimal-path DAG, backwards from t
+            v = todo.pop()
+            if v in preds or v == s:
+                continue
+            lo, hi = int(indptr[v]), int(indptr[v + 1])
+            preds[v] = [
+                u
+                for u, c in zip(tails[lo:hi].tolist(), classes[lo:hi].tolist(), strict=True)
+                if order.get(u, math.inf) < order[v] and abs(dist[u] + cost[c] - dist[v]) <= 1e-9
+            ]
+            todo += preds[v]
+        count = {s: 1}
+        for v in sorted(preds, key=order.__getitem__):  # settle order: predecessors first
+            count[v] = sum(count[u] for u in preds[v])
+        path = [t]
+        while path[-1] != s:
+            options = preds[path[-1]]
+            if len(options) > 1:
+                r = rng.random() * count[path[-1]]
+                for u in options:
+                    r -= count[u]
+                    if r < 0:
+                        break
+            else:
+                u = options[0]
+            path.append(u)
+        return path[::-1]
+
     def k_shortest_paths(self, start: int, goal: int, k: int) -> list[list[int]]:
-        """Up to k shortest loopless paths in number of edges: Yen's algorithm, each spur path found by
-        A* guided by the exact hop count to the goal in the whole graph (admissible when Yen removes
-        nodes and edges, so each search stays close to the shortest paths)."""
+        """Up to k shortest loopless paths in number of edges, of k different shapes (SPEC §6): Yen's
+        algorithm, each spur path found by A* guided by the exact hop count to the goal in the whole
+        graph (admissible when Yen removes nodes and edges, so each search stays close to the shortest
+        paths). A path with the sequence of SR classes of a kept one (a block permutation of it) stays
+        in Yen's list, which the next spurs need, but is not kept. Yen stops after YEN_PATHS_PER_SHAPE * k
+        paths: one shape can have dozens of block permutations, and each further path costs one search
+        per node of the previous one."""
         s, t = self.node_of.get(start), self.node_of.get(goal)
         if s is None or t is None or s == t or k < 1:
             return []
-        hops = og.bfs_hops(*self._csr(1), t).tolist()  # hop count to t along predecessor lists
+        hops = og.bfs_hops(*self._csr(1)[:2], t).tolist()  # hop count to t along predecessor lists
         first = self._astar(s, t, hops, set(), set())
         if first is None:
             return []
         found, candidates, seen = [first], [], {tuple(first)}
-        while len(found) < k:
+        kept = {self._shape(first): first}  # shape -> its shortest path, in Yen's order
+        while len(kept) < k and len(found) < YEN_PATHS_PER_SHAPE * k:
             last = found[-1]
             for i in range(len(last) - 1):
                 root = last[: i + 1]
@@ -729,7 +776,12 @@ class SemanticGraph:
             if not candidates:
                 break
             found.append(heapq.heappop(candidates)[1])
-        return [[self.masks[i] for i in p] for p in found]
+            kept.setdefault(self._shape(found[-1]), found[-1])
+        return [[self.masks[i] for i in p] for p in kept.values()]
+
+    def _shape(self, path: list[int]) -> tuple[int, ...]:
+        """The SR classes of a path's edges: equal for paths that are block permutations of each other."""
+        return tuple(self.succ_class[u][self.succ[u].index(v)] for u, v in zip(path, path[1:], strict=False))
 
     def _astar(self, s: int, t: int, hops: list[int], banned_nodes: set, banned_edges: set) -> list[int] | None:
         if hops[s] < 0:
@@ -749,13 +801,14 @@ class SemanticGraph:
                 heapq.heappush(heap, (nd + hops[v], -nd, v))  # ties: deepest first
         return None
 
-    def _csr(self, by: int) -> tuple[np.ndarray, np.ndarray]:
-        """Edges grouped by their tail (by=0: successor lists) or head (by=1: predecessor lists), as CSR."""
+    def _csr(self, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Edges grouped by their tail (by=0: successor lists) or head (by=1: predecessor lists), as CSR:
+        indptr, the other end of each edge, and its SR class."""
         if by not in self._cache:
             edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
             order = np.argsort(edges[:, by], kind="stable")
             indptr = np.searchsorted(edges[order, by], np.arange(self.n_nodes + 1))
-            self._cache[by] = (indptr, edges[order, 1 - by])
+            self._cache[by] = (indptr, edges[order, 1 - by], edges[order, 2])
         return self._cache[by]
 
     def reachable(self, start: int) -> np.ndarray:
@@ -763,7 +816,7 @@ class SemanticGraph:
         s = self.node_of.get(start)
         if s is None:
             return np.array([start], dtype=np.int64)
-        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self._csr(0), s) >= 0]
+        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self._csr(0)[:2], s) >= 0]
 
     def edge_keys(self) -> np.ndarray:
         """Sorted int keys (mask_u << dim | mask_v) of the agent's edges, for set look-ups in numpy."""
@@ -789,7 +842,7 @@ class SemanticGraph:
             paths = self.k_shortest_paths(start, goal, self.args.k_shortest)
             path = paths[rng.integers(len(paths))] if paths else None
         else:
-            path = self.safest_path(start, goal)
+            path = self.safest_path(start, goal, rng)
         path = path or [start, goal]
         cap = self.args.max_path_len
         return path if len(path) <= cap else [path[0]] + path[-(cap - 1) :]
@@ -855,6 +908,13 @@ class SocialPartner:
         keys = (np.int64(config) << self.dim) | tails
         beyond = tails[~np.isin(keys, graph.edge_keys())]
         return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
+
+
+def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The internalization buffer is a set of distinct (frontier, beyond) pairs (SPEC §7), kept as a
+    list in first-stored order so that a seeded draw picks the same pair on every worker: the kept
+    pairs, then those of `new` (every worker's, in rank order) not already in."""
+    return list(dict.fromkeys([*kept, *new]))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -957,7 +1017,7 @@ class Learner:
     # --- the goal sampler: HME (SPEC §7) -----------------------------------------------------------
     def init_goal_sampler(self):
         self.sp = SocialPartner(self.args.n_blocks)
-        self.internalization_buffer: list[tuple[int, int]] = []  # failed (frontier, beyond) proposals
+        self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
 
     def run_cycle(self) -> list[Segment]:
         """One cycle's segments (SPEC §7): social with probability sp_ratio; otherwise a rehearsal of
@@ -974,7 +1034,7 @@ class Learner:
             segments = self.autotelic_cycle(self.args.n_segments)
         # Workers merge the pairs they stored this cycle: every worker rehearses all of them (SPEC §11).
         new = all_gather_rows(np.array(self.internalization_buffer[known:], dtype=np.int64).reshape(-1, 2))
-        self.internalization_buffer[known:] = [tuple(p) for p in new.tolist()]
+        self.internalization_buffer = merge_pairs(self.internalization_buffer[:known], list(map(tuple, new.tolist())))
         return segments
 
     def autotelic_goal(self) -> int:
@@ -998,36 +1058,32 @@ class Learner:
     def social_cycle(self) -> list[Segment]:
         """Reset; the social partner proposes a frontier goal and the agent goes there; then goals just
         beyond, chained while they succeed; a failed one is stored for rehearsal. When the partner has
-        nothing to propose, the rest of the cycle is autotelic (SPEC §7)."""
+        nothing to propose, the rest of the cycle is autotelic. The ablations keep only the frontier leg
+        or only a beyond goal (SPEC §7; paper Algorithm 1)."""
         a, segments = self.args, []
         while len(segments) < a.n_segments:
             self.env.reset()
             self.goals += 1
             here, left = current_config(self.env), a.n_segments - len(segments)
             frontier = self.sp.frontier_goal(self.graph, here, self.rng)
-            if a.strategy == "frontier":  # the frontier goal only, pursued like the agent's own goals
-                if frontier is None:
-                    break
-                self.propose("frontier", frontier)
-                segments += self.pursue(frontier, left, explore=True, deterministic=False)[0]
-            elif a.strategy == "beyond" and frontier is not None:  # the frontier stays hidden
-                beyond = self.sp.beyond_goal(self.graph, frontier, self.rng)
-                self.propose("beyond", beyond)
-                segs, reached = self.pursue(beyond, left, explore=True, deterministic=False)
-                segments += segs
-                if not reached:
-                    self.internalization_buffer.append((frontier, beyond))
-            elif frontier is None:  # no reachable frontier: goals beyond the current config, directly
-                segs = self.beyond_goals(here, left)
-                if not segs:
-                    break
-                segments += segs
-            else:
-                self.propose("frontier", frontier)
-                segs, arrived = self.go_to_frontier(frontier, left)
-                segments += segs
+            base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
+            if a.strategy == "frontier-and-beyond":
+                segs, arrived = [], True
+                if frontier is not None:
+                    self.propose("frontier", frontier)
+                    segs, arrived = self.go_to_frontier(frontier, left)
                 if arrived:
-                    segments += self.beyond_goals(frontier, a.n_segments - len(segments))
+                    segs += self.beyond_goals(base, left - len(segs))
+            elif a.strategy == "frontier":  # --strategy frontier: go there deterministically, then reset
+                segs = []
+                if frontier is not None:
+                    self.propose("frontier", frontier)
+                    segs = self.go_to_frontier(frontier, left)[0]
+            else:  # --strategy beyond: the frontier stays hidden; one goal beyond it, retried until reached
+                segs = self.attempt_until_reached(self.sp.beyond_goal(self.graph, base, self.rng), left)
+            if not segs:
+                break  # nothing to propose (or, --strategy frontier, already there): the rest is autotelic
+            segments += segs
         return segments + self.autotelic_cycle(a.n_segments - len(segments))
 
     def beyond_goals(self, start: int, budget: int) -> list[Segment]:
@@ -1043,10 +1099,29 @@ class Learner:
             segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks), self.args,
                                         deterministic=False))  # fmt: skip
             if not segments[-1].success:
-                self.internalization_buffer.append((start, beyond))
+                self.internalize(start, beyond)
                 break
             start = beyond
         return segments
+
+    def attempt_until_reached(self, beyond: int | None, budget: int) -> list[Segment]:
+        """--strategy beyond (SPEC §7): one beyond goal attempted directly from where the agent is, with
+        the stochastic policy, segment after segment without reset until reached or the budget is
+        spent. Nothing is stored."""
+        segments = []
+        if beyond is not None:
+            self.propose("beyond", beyond)
+        while beyond is not None and len(segments) < budget:
+            segments.append(run_segment(self.env, self.agent, og.from_mask(beyond, self.args.n_blocks), self.args,
+                                        deterministic=False))  # fmt: skip
+            if segments[-1].success:
+                break
+        return segments
+
+    def internalize(self, frontier: int, beyond: int):
+        """Store a failed pair once, however often it fails (SPEC §7): rehearsals draw distinct pairs."""
+        if (frontier, beyond) not in self.internalization_buffer:
+            self.internalization_buffer.append((frontier, beyond))
 
     def rehearsal_cycle(self) -> list[Segment]:
         """Internalization (SPEC §7): reset, draw a stored (frontier, beyond) pair, go to the frontier
@@ -1071,8 +1146,8 @@ class Learner:
         self.stats[f"sp_{kind}_{name or 'other'}"] += 1
 
     def sampler_stats(self) -> dict:
-        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the
-        internalization buffer, and the partner's proposals per class (frontier and beyond)."""
+        """Per-epoch HME numbers: share of social and rehearsal cycles, stepping stones left, the number
+        of distinct internalized pairs, and the partner's proposals per class (frontier and beyond)."""
         names = [*self.classes, "other"]
         proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
         cycles = ["cycles", "social_cycles", "rehearsal_cycles", "autotelic_goals", "autotelic_reached"]
@@ -1083,7 +1158,7 @@ class Learner:
             social_share=st["social_cycles"] / cycles,
             rehearsal_share=st["rehearsal_cycles"] / cycles,
             stepping_stones=len(self.sp.stepping_stones(self.graph)),
-            internalization_size=len(self.internalization_buffer),
+            internalized_pairs=len(self.internalization_buffer),
             **{f"sp_frontier_{k}": st[f"sp_frontier_{k}"] for k in names},
             **{f"sp_beyond_{k}": st[f"sp_beyond_{k}"] for k in names},
         )
@@ -1092,7 +1167,7 @@ class Learner:
         return dict(internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2))
 
     def load_sampler_state(self, s: dict):
-        self.internalization_buffer = [tuple(p) for p in s["internalization"].tolist()]
+        self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
 
     # --- learning -------------------------------------------------------------------------------
     def summed_stats(self, keys: list[str]) -> dict[str, float]:

@@ -125,9 +125,9 @@ def main():
 
     g = synthetic_graph()
     pairs = rng.integers(g.n_nodes, size=(40, 2))
-    safest = [median_ms(lambda s=s, e=e: g.safest_path(s, e), 1, warmup=0) for s, e in pairs]
+    safest = [median_ms(lambda s=s, e=e: g.safest_path(s, e, rng), 1, warmup=0) for s, e in pairs]
     kshort = [median_ms(lambda s=s, e=e: g.k_shortest_paths(s, e, 5), 1, warmup=0) for s, e in pairs[:20]]
-    lengths = [len(g.safest_path(int(s), int(e)) or []) for s, e in pairs]
+    lengths = [len(g.safest_path(int(s), int(e), rng) or []) for s, e in pairs]
 
     learner.plan_seconds = 0.0
     t0 = time.perf_counter()

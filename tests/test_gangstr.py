@@ -12,10 +12,12 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 import torch
 
 import gangstr_hme as gh
@@ -360,7 +362,7 @@ def test_safest_path_is_the_most_reliable_path_of_a_brute_force_enumeration(seed
     g = random_graph(7, 0.35, seed)
     for s, t in itertools.permutations(range(7), 2):
         paths = all_simple_paths(g, s, t)
-        found = g.safest_path(s, t)
+        found = g.safest_path(s, t, np.random.default_rng(seed))
         if not paths:
             assert found is None
             continue
@@ -378,6 +380,77 @@ def test_yen_k_shortest_paths_match_a_brute_force_enumeration(seed):
         assert all(p in paths for p in found) and len({tuple(p) for p in found}) == len(found)
         assert sorted(len(p) for p in found) == sorted(len(p) for p in paths)[: len(found)]
         assert [len(p) for p in found] == sorted(len(p) for p in found)
+
+
+def test_equally_safe_paths_are_chosen_uniformly_and_a_less_safe_one_never():
+    g = random_graph(9, 0.0, 0)
+    sr = {(0, 1): 0.5, (0, 2): 0.5, (1, 3): 0.5, (2, 3): 0.5, (3, 5): 0.5,  # two paths into 3, then 5
+          (0, 4): 0.25, (4, 5): 0.5,  # 4 has one path in: a walk back from 5 must not favour it
+          (0, 7): 0.5, (7, 8): 0.5**1.5, (8, 5): 0.5**0.5,  # 1/8 as well, up to rounding
+          (0, 6): 0.5, (6, 5): 0.2}  # fmt: skip
+    for (u, v), p in sr.items():
+        g._add_edge(u, v, len(g.sr))
+        g.sr.append(p)
+    best = max(path_sr(g, p) for p in all_simple_paths(g, 0, 5))
+    optimal = {tuple(p) for p in all_simple_paths(g, 0, 5) if math.isclose(path_sr(g, p), best)}
+    assert len(optimal) == 4  # all but 0 -> 6 -> 5
+    rng = np.random.default_rng(0)
+    drawn = [tuple(g.safest_path(0, 5, rng)) for _ in range(2000)]
+    paths, counts = zip(*Counter(drawn).items(), strict=True)
+    assert set(paths) == optimal
+    assert scipy.stats.chisquare(counts).pvalue > 1e-3  # SPEC §6: uniform among the safest
+
+
+def random_graph_with_shared_srs(n_nodes, p, n_classes, seed):
+    """Plain-id nodes whose edges share n_classes SR classes, so that different paths can have the
+    same sequence of classes (the shape of block permutations of one path)."""
+    rng = np.random.default_rng(seed)
+    g = random_graph(n_nodes, 0.0, seed)
+    g.sr = rng.uniform(0.05, 1.0, size=n_classes).tolist()
+    for u, v in itertools.permutations(range(n_nodes), 2):
+        if rng.random() < p:
+            g._add_edge(u, v, int(rng.integers(n_classes)))
+    return g
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_k_shortest_paths_are_the_shortest_paths_of_k_different_shapes(seed):
+    g = random_graph_with_shared_srs(7, 0.45, 2, seed)
+    cls = {(u, v): c for u, v, c in g.edge_log}
+    for s, t in itertools.permutations(range(7), 2):
+        paths = all_simple_paths(g, s, t)
+        shortest_of_shape = {}
+        for p in sorted(paths, key=len):
+            shortest_of_shape.setdefault(tuple(cls[e] for e in zip(p, p[1:], strict=False)), len(p))
+        found = g.k_shortest_paths(s, t, 5)
+        shapes = [tuple(cls[e] for e in zip(p, p[1:], strict=False)) for p in found]
+        assert all(p in paths for p in found) and len(set(shapes)) == len(found)  # SPEC §6: k shapes
+        if len(paths) <= gh.YEN_PATHS_PER_SHAPE * 5:  # within Yen's bound: exactly the k shortest shapes
+            assert sorted(len(p) for p in found) == sorted(shortest_of_shape.values())[:5]
+
+
+def test_the_k_shortest_paths_on_real_configs_are_the_shortest_of_different_shapes_up_to_block_permutation():
+    n, oracle = 3, og.OracleGraph(3)
+    g = gh.SemanticGraph(n, gh.Args(n_blocks=n))
+    for u in range(oracle.n_nodes):
+        for v in oracle.neighbour_indices(u).tolist():
+            g.add_config(int(oracle.masks[u]))
+            g.add_config(int(oracle.masks[v]))
+            g.edge_class(int(oracle.masks[u]), int(oracle.masks[v]))
+    dim = og.config_dim(n)
+
+    def shape(path):  # each edge's canonical form: the least key over joint block permutations
+        ends = [og.permute_masks(np.array([u, v]), n) for u, v in zip(path, path[1:], strict=False)]
+        return tuple(int(((pu << dim) | pv).min()) for pu, pv in ends)
+
+    apart, chain = M(3), M(3, close=[(0, 1), (1, 2)])  # 0-1 then 1-2, or 1-2 then 0-1: one shape
+    s, t = g.node_of[apart], g.node_of[chain]
+    shortest_of_shape = {}
+    for p in sorted(all_simple_paths(g, s, t), key=len):
+        shortest_of_shape.setdefault(shape([g.masks[i] for i in p]), len(p))
+    found = g.k_shortest_paths(apart, chain, 5)
+    assert len({shape(p) for p in found}) == len(found) == 5
+    assert sorted(len(p) for p in found) == sorted(shortest_of_shape.values())[:5]
 
 
 def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_configs():
@@ -403,7 +476,7 @@ def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():
     g.update(c01, stack, target=stack, success=True)
     rng = np.random.default_rng(0)
     expected = [apart, c01, stack]
-    assert g.safest_path(apart, stack) == expected
+    assert g.safest_path(apart, stack, rng) == expected
     assert g.k_shortest_paths(apart, stack, 5)[0] == expected
     for explore in (False, True):
         assert g.plan(apart, stack, rng, explore) == expected

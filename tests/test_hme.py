@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 import torch
 
 import gangstr_hme as gh
@@ -194,7 +195,7 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
     segments = learner.social_cycle()
     assert len(segments) == learner.args.n_segments == 10
     log = world.log
-    i, episodes = 0, 0
+    i, episodes, failed = 0, 0, []
     while i < len(log):
         assert log[i] == "reset"  # every episode starts from a reset
         episodes += 1
@@ -211,11 +212,111 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
             if ok:
                 start = beyond
             else:
-                assert (start, beyond) in learner.internalization_buffer  # a failure is internalized
+                failed.append((start, beyond))  # a failure is internalized
                 assert i == len(log) or log[i] == "reset"  # ... and the episode ends
-    failures = [e for e in log if e != "reset" and e[1] == "stoch" and not e[2]]
-    assert len(learner.internalization_buffer) == len(failures) and episodes >= 2
+    assert episodes >= 2 and learner.internalization_buffer == list(dict.fromkeys(failed))  # once each
     assert learner.stats["sp_frontier_C1"] + learner.stats["sp_frontier_S2"] == episodes
+
+
+def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_and_stores_nothing(monkeypatch):
+    learner = hme_learner(strategy="frontier")
+    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    frontiers = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
+    tries = []
+
+    def script(goal, deterministic):
+        tries.append(goal)
+        return len(tries) % 3 != 0  # every third frontier leg fails
+
+    world = ScriptedWorld(learner, monkeypatch, APART, script)
+    assert len(learner.social_cycle()) == 10
+    # SPEC §7, --strategy frontier: reset, the frontier goal along the safest path with the
+    # deterministic policy (here one small step), then reset again; no beyond goal, nothing stored.
+    assert world.log[0::2] == ["reset"] * 10
+    assert all(goal in frontiers and mode == "det" for goal, mode, _ in world.log[1::2])
+    assert not learner.internalization_buffer
+    assert learner.stats["sp_frontier_C1"] + learner.stats["sp_frontier_S2"] == 10
+    assert not any(k.startswith("sp_beyond") for k in learner.stats)
+
+
+def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset_until_reached(monkeypatch, sp):
+    learner = hme_learner(strategy="beyond")
+    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    stones = brute_force_stones(sp, learner.graph) & reachable(learner.graph, APART)
+    agent_edges = {(learner.graph.masks[u], learner.graph.masks[v]) for u, v, _ in learner.graph.edge_log}
+    neighbours = {m: og.to_mask(sp.oracle.neighbours(og.from_mask(m, N))).tolist() for m in stones}
+    beyond = {c for m in stones for c in neighbours[m] if (m, c) not in agent_edges}
+    tries = []
+
+    def script(goal, deterministic):
+        tries.append(goal)
+        return len(tries) % 3 == 0  # each goal is reached at the third attempt
+
+    world = ScriptedWorld(learner, monkeypatch, APART, script)
+    assert len(learner.social_cycle()) == 10
+    # SPEC §7, --strategy beyond: reset, one goal beyond a frontier the agent is not shown, attempted
+    # directly with the stochastic policy, again and again without reset until reached; nothing stored.
+    episodes = " ".join("R" if e == "reset" else ("+" if e[2] else "-") for e in world.log).split("R")[1:]
+    assert [e.split() for e in episodes] == [["-", "-", "+"]] * 3 + [["-"]]
+    goals = [[e[0] for e in world.log[i + 1 : i + 4]] for i in (0, 4, 8)]
+    assert all(len(set(g)) == 1 and g[0] in beyond for g in goals)  # one goal per episode, beyond a frontier
+    assert all(e == "reset" or e[1] == "stoch" for e in world.log)
+    assert not learner.internalization_buffer
+    assert not any(k.startswith("sp_frontier") for k in learner.stats)
+    assert sum(v for k, v in learner.stats.items() if k.startswith("sp_beyond")) == 4
+
+
+C01_BEYOND = [M(close=[(0, 1)], above=[(0, 1)]), M(close=[(0, 1)], above=[(1, 0)]), M(close=[(0, 1), (1, 2)]),
+              M(close=[(0, 1), (0, 2)])]  # fmt: skip
+
+
+def rehearsed_goals(learner, monkeypatch, cycles):
+    """The beyond goals attempted over `cycles` rehearsal cycles, every frontier reached."""
+    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)
+    for _ in range(cycles):
+        learner.rehearsal_cycle()
+    return [e[0] for e in world.log if e != "reset" and e[1] == "stoch"]
+
+
+def test_a_pair_failed_again_and_again_is_stored_once_and_rehearsed_as_often_as_any_other(monkeypatch):
+    learner = hme_learner(sp_ratio=0.0)
+    learner.graph = agent_graph([(APART, C01)])
+    failures = [C01_BEYOND[0]] * 10 + [C01_BEYOND[1]] + [C01_BEYOND[2]] * 3
+    for beyond in failures:
+        learner.internalize(C01, beyond)
+    assert learner.internalization_buffer == [(C01, b) for b in C01_BEYOND[:3]]  # SPEC §7: a set
+    counts = np.unique(rehearsed_goals(learner, monkeypatch, 300), return_counts=True)[1]
+    assert len(counts) == 3 and counts.sum() == 1500  # 5 draws a cycle: frontier leg, beyond attempt
+    assert scipy.stats.chisquare(counts).pvalue > 1e-3  # uniform over pairs, not 10 : 1 : 3
+
+
+@pytest.mark.parametrize("rank", [0, 1])
+def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypatch, rank):
+    a, b, c, d = ((C01, g) for g in C01_BEYOND)
+    stored = {0: [b, a, c, b], 1: [c, d, d, a]}  # each worker's failures this cycle; `a` was stored before
+    learner = hme_learner(sp_ratio=0.0, internalization_prob=0.0)
+    learner.graph = agent_graph([(APART, C01)])
+    learner.internalization_buffer = [a]
+
+    def cycle(budget):
+        for pair in stored[rank]:
+            learner.internalize(*pair)
+        return []
+
+    local = {0: np.array([b, c]), 1: np.array([c, d])}  # what each worker keeps: its new distinct pairs
+
+    def all_gather_rows(rows):
+        np.testing.assert_array_equal(rows, local[rank])
+        return np.concatenate([local[0], local[1]])  # rank order
+
+    monkeypatch.setattr(learner, "autotelic_cycle", cycle)
+    monkeypatch.setattr(gh, "all_gather_rows", all_gather_rows)
+    learner.run_cycle()
+    # The same distinct pairs in the same order on every worker (so a seeded draw agrees): the old
+    # ones, then the new ones in rank order.
+    assert learner.internalization_buffer == [a, b, c, d]
+    counts = np.unique(rehearsed_goals(learner, monkeypatch, 200), return_counts=True)[1]
+    assert len(counts) == 4 and scipy.stats.chisquare(counts).pvalue > 1e-3
 
 
 def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_goal(monkeypatch):
@@ -279,7 +380,7 @@ def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
     assert out.returncode == 0, out.stderr
     (run_dir,) = tmp_path.iterdir()
     (row,) = csv.DictReader((run_dir / "progress.csv").open())
-    for column in ("stepping_stones", "internalization_size", "social_share", "sp_frontier_C1", "sp_beyond_S2"):
+    for column in ("stepping_stones", "internalized_pairs", "social_share", "sp_frontier_C1", "sp_beyond_S2"):
         assert column in row
     if "--internalization-prob" in flags:
         assert float(row["rehearsal_share"]) == 0.0
