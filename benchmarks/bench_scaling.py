@@ -23,12 +23,13 @@ ROOT = Path(__file__).resolve().parent.parent
 def steps_per_second(launcher: list[str], threads: int, args) -> float:
     with tempfile.TemporaryDirectory() as runs:
         cmd = [*launcher, "gangstr_hme.py", "--n-blocks", str(args.n_blocks), "--n-epochs", "1",
-               "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "0", "--threads", str(threads),
+               "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "1", "--threads", str(threads),
                "--no-save-buffer", "--runs-dir", runs]  # fmt: skip
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True)
         (progress,) = Path(runs).glob("*/progress.csv")
         with progress.open() as f:
-            return float(next(csv.DictReader(f))["steps_per_second"])
+            row = next(csv.DictReader(f))  # collection and updates only, not the evaluation
+            return float(row["env_steps"]) / (float(row["time_collect"]) + float(row["time_update"]))
 
 
 def main():

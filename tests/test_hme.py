@@ -389,7 +389,7 @@ def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
 def test_logged_social_share_matches_sp_ratio(tmp_path):
     flags = ["--sp-ratio", "0.25", "--n-cycles", "400", "--n-segments", "1", "--segment-len", "2",
              "--stable-steps", "1", "--n-updates", "0", "--n-epochs", "1", "--n-blocks", "3",
-             "--eval-goals-per-class", "0", "--threads", "1"]  # fmt: skip
+             "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
     out = subprocess.run([sys.executable, "gangstr_hme.py", *flags, "--runs-dir", str(tmp_path)], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 0, out.stderr
