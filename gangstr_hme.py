@@ -1565,12 +1565,13 @@ class Stopper:
         return bool(all_sum(np.array([float(self.requested)]))[0] > 0)
 
 
-def stop_here(state: dict | None, path: Path) -> int:
-    """Save the checkpoint a resume continues from (worker 0), say how to resume, exit code 130."""
+def stop_here(learner: Learner, state: dict | None, path: Path) -> int:
+    """Save the checkpoint a resume continues from (worker 0; None: it is saved already), say how to
+    resume, exit code 130."""
     if rank() == 0:
         if state is not None:
             save_checkpoint(state, path)
-        c = torch.load(path, weights_only=True, map_location="cpu")["counters"] if state is None else state["counters"]
+        c = state["counters"] if state is not None else dict(epoch=learner.epoch, cycle=learner.cycle)
         print(f"interrupted: checkpoint saved to {path} (epoch {c['epoch']}, cycle {c['cycle']}); "
               f"continue with --resume {path}", flush=True)  # fmt: skip
     return 130
@@ -1649,14 +1650,14 @@ def train(learner: Learner, logger: Logger | None, ckpt_path: Path, stopper: Sto
                 progress(f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
                          f"nodes {learner.graph.n_nodes:,} | critic loss {loss:.3f}")  # fmt: skip
             if stopper.agreed():
-                return stop_here(learner.state_dict() if rank() == 0 else None, ckpt_path)
+                return stop_here(learner, learner.state_dict() if rank() == 0 else None, ckpt_path)
         before_eval = learner.state_dict() if world() == 1 else None  # cheap: views of the live tensors
         t = time.perf_counter()
         try:
             with stopper.abortable(allowed=before_eval is not None):
                 sr = learner.evaluate()
         except KeyboardInterrupt:
-            return stop_here(before_eval, ckpt_path)
+            return stop_here(learner, before_eval, ckpt_path)
         learner.tally["eval"] = time.perf_counter() - t
         row = finish_epoch(learner, sr)
         if logger is not None:
@@ -1667,7 +1668,7 @@ def train(learner: Learner, logger: Logger | None, ckpt_path: Path, stopper: Sto
                  f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
                  final=True)  # fmt: skip
         if stopper.agreed():
-            return stop_here(None, ckpt_path)
+            return stop_here(learner, None, ckpt_path)
     return 0
 
 

@@ -327,12 +327,18 @@ def test_finger_boxes_sit_8mm_inward_with_fetchs_contact_and_limit_parameters():
 # ------------------------------------------------------------------------------------------------
 # 4c. The workspace box (SPEC §3)
 # ------------------------------------------------------------------------------------------------
-# The grip site sits GRIP_OFFSET below the gripper body that follows the clipped mocap; 2 mm covers
-# the weld's lag and overshoot (0.5 mm measured over corner, random and bang-bang sequences).
-def grip_box():
+# The grip site sits GRIP_OFFSET below the gripper body that follows the clipped mocap. The weld is
+# soft: in free space the body lags or overshoots the target by under 1 mm, but a finger pressed
+# against the table's side pushes the gripper out by more (at most 2.2 cm over 540 random and
+# bang-bang sequences of 400 steps; the worst had a finger on the table). The mocap target never leaves.
+PUSH = 0.03
+
+
+def grip_box(margin: float = PUSH):
     """(low, high) corners the grip site must stay within (a function: benchmarks/bench_grasp.py imports
     this file's controllers against older envs without a workspace)."""
-    return fe.WORKSPACE_LOW - (0, 0, fe.GRIP_OFFSET) - 0.002, fe.WORKSPACE_HIGH - (0, 0, fe.GRIP_OFFSET) + 0.002
+    offset = (0, 0, fe.GRIP_OFFSET)
+    return fe.WORKSPACE_LOW - offset - margin, fe.WORKSPACE_HIGH - offset + margin
 
 
 CORNERS = [np.r_[x, y, z, 0.0] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
@@ -346,6 +352,8 @@ def assert_stays_in_the_workspace(actions, seed):
         obs, *_ = env.step(a)
         grip = obs["observation"][:3]
         assert np.all(grip >= low) and np.all(grip <= high), f"grip site at {grip}"
+        target = env.data.mocap_pos[0]
+        assert np.all(target >= fe.WORKSPACE_LOW) and np.all(target <= fe.WORKSPACE_HIGH), f"mocap at {target}"
         assert env.observation_space.contains(obs)
     return grip
 
@@ -354,13 +362,13 @@ def assert_stays_in_the_workspace(actions, seed):
 def test_400_steps_toward_a_corner_stop_the_gripper_at_that_corner_of_the_workspace(corner):
     a = CORNERS[corner]
     grip = assert_stays_in_the_workspace([a] * 400, seed=corner)
-    wall = np.where(a[:3] > 0, *grip_box()[::-1])
+    wall = np.where(a[:3] > 0, *grip_box(margin=0.0)[::-1])
     # Reaches its corner, except that going down the table stops it first.
     np.testing.assert_allclose(grip[:2], wall[:2], atol=0.003)
     assert abs(grip[2] - wall[2]) < 0.003 or (a[2] < 0 and grip[2] > fe.TABLE_Z)
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=12, deadline=None, derandomize=True)  # the same examples every run
 @given(
     seed=st.integers(0, 2**16),
     hold_steps=st.sampled_from([1, 5, 40]),
