@@ -171,12 +171,14 @@ def test_a_paper_file_holding_a_foreign_object_is_refused_with_one_line_and_noth
         (["--plan-on", "oracle"], "--plan-on 'oracle' plans an --eval-only evaluation"),
     ],
 )
-def test_bad_uses_of_the_new_flags_exit_2_with_one_line_naming_them(tmp_path, argv, says):
+def test_bad_uses_of_the_new_flags_exit_2_with_one_line_naming_them(tmp_path, argv, says, capsys):
     write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
     argv = [a.format(paper=tmp_path / "gangstr.pt") for a in argv]
-    out = run_script(*argv, "--threads", "1", runs_dir=tmp_path / "runs")
-    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
-    assert says in out.stderr and not (tmp_path / "runs").exists()
+    with pytest.raises(SystemExit) as e:
+        gh.main([*argv, "--threads", "1", "--runs-dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert says in err and not (tmp_path / "runs").exists()
 
 
 # ------------------------------------------------------------------------------------------------
