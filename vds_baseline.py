@@ -1288,10 +1288,16 @@ def load_checkpoint(path: str, flag: str = "--resume") -> dict:
 
 # The paper's trained agent (the authors' hipstr/gangstr.pt): a legacy torch.save of [o_mean, o_std, g_mean,
 # g_std] (float32 numpy arrays) and the actor's and critic's state dicts, named as below.
-_reconstruct = np.zeros(0, np.float32).__reduce__()[0]  # numpy's array unpickler, wherever numpy keeps it
-PAPER_GLOBALS = [(_reconstruct, "numpy.core.multiarray._reconstruct"),  # the name numpy 1 (the authors') wrote
-                 (_reconstruct, "numpy._core.multiarray._reconstruct"),  # ... and numpy 2's
-                 np.ndarray, np.dtype, type(np.dtype(np.float32))]  # float32 arrays, nothing else  # fmt: skip
+# Loading it needs numpy's array unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the
+# array and dtype classes and the float32 dtype: float32 arrays and nothing else.
+_reconstruct = np.zeros(0, np.float32).__reduce__()[0]
+PAPER_GLOBALS = [
+    (_reconstruct, "numpy.core.multiarray._reconstruct"),
+    (_reconstruct, "numpy._core.multiarray._reconstruct"),
+    np.ndarray,
+    np.dtype,
+    type(np.dtype(np.float32)),
+]
 PAPER_LAYERS = (  # (the authors' layer, our network and layer): SPEC §5's roles in order. Two layers of theirs
     # mapped to one of ours are stacked in this order: our head's mean rows above its log-std rows.
     ("phi_actor.linear1", "actor", "node.hidden"),
@@ -1327,14 +1333,20 @@ def from_paper(items: list, path: str, flag: str) -> dict:
         checkpoint_error(flag, path, f"the paper's format, but statistics of sizes {len(o_mean)} and {len(g_mean)}")
     if (g_mean != 0).any() or (g_std != 1).any():
         checkpoint_error(flag, path, "the paper's format, but with normalized goals (SPEC §5 normalizes none)")
+    theirs = dict(actor=nets[0], critic=nets[1])
+    for net, tensors in theirs.items():
+        expected = {f"{layer}.{p}" for layer, of, _ in PAPER_LAYERS if of == net for p in ("weight", "bias")}
+        if set(tensors) != expected or not all(isinstance(v, torch.Tensor) for v in tensors.values()):
+            odd = sorted(set(tensors) ^ expected) or ["a value that is not a tensor"]
+            checkpoint_error(flag, path, f"the paper's format, but its {net} differs: {', '.join(odd)}")
     state = dict(format="paper", n_blocks=n, normalizer=dict(mean=o_mean, std=o_std), actor={}, critic={})
-    for theirs, net, ours in PAPER_LAYERS:
+    for layer, net, ours in PAPER_LAYERS:
         for p in ("weight", "bias"):
-            weights = nets[net == "critic"].get(f"{theirs}.{p}")
-            if not isinstance(weights, torch.Tensor):
-                checkpoint_error(flag, path, f"the paper's format, but without the tensor {theirs}.{p}")
-            before = state[net].get(f"{ours}.{p}")
-            state[net][f"{ours}.{p}"] = weights if before is None else torch.cat([before, weights])
+            before, weights = state[net].get(f"{ours}.{p}"), theirs[net][f"{layer}.{p}"]
+            try:
+                state[net][f"{ours}.{p}"] = weights if before is None else torch.cat([before, weights])
+            except RuntimeError as e:  # stacked layers of different widths
+                checkpoint_error(flag, path, f"the paper's format, but {layer}.{p}: {e}")
     return state
 
 

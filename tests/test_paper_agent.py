@@ -158,6 +158,30 @@ def test_a_paper_file_holding_a_foreign_object_is_refused_with_one_line_and_noth
 
 
 @pytest.mark.parametrize(
+    "change, says",
+    [
+        (
+            lambda items: items[4].pop("rho_actor.log_std_linear.bias"),
+            "its actor differs: rho_actor.log_std_linear.bias",
+        ),
+        (lambda items: items[5].update(extra=torch.zeros(1)), "its critic differs: extra"),
+        (lambda items: items.__setitem__(3, items[3] * 2), "normalized goals"),
+        (lambda items: items.__setitem__(0, np.zeros(86, np.float32)), "statistics of sizes 86 and 30"),
+        (lambda items: items.pop(), "nor the paper's agent"),
+    ],
+    ids=["missing layer", "extra tensor", "normalized goals", "observation size", "5 items"],
+)
+def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path, change, says, capsys):
+    items = write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
+    change(items)
+    torch.save(items, tmp_path / "gangstr.pt", _use_new_zipfile_serialization=False)
+    with pytest.raises(SystemExit) as e:
+        gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--checkpoint")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and says in err, err
+
+
+@pytest.mark.parametrize(
     "argv, says",
     [
         (["--eval-only", "--checkpoint", "{paper}", "--n-blocks", "3"], "--n-blocks 3, but"),
@@ -272,6 +296,7 @@ def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its
     state = gh.load_checkpoint(str(tmp_path / "ours.pt"), "--init-from")
     fresh = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, seed=1), torch.device("cpu"))
     gh.load_weights(fresh.agent, state, fresh.args, "ours.pt", "--init-from")
-    assert fresh.agent.normalizer.count == 70 and np.allclose(fresh.agent.normalizer.mean, learner.agent.normalizer.mean)
-    assert all(torch.equal(p, q) for p, q in zip(fresh.agent.actor.parameters(), learner.agent.actor.parameters()))
+    mine, theirs = fresh.agent, learner.agent
+    assert mine.normalizer.count == 70 and np.array_equal(mine.normalizer.mean, theirs.normalizer.mean)
+    assert all(torch.equal(p, q) for p, q in zip(mine.actor.parameters(), theirs.actor.parameters(), strict=True))
     assert fresh.graph.n_nodes == 0 and fresh.epoch == 0  # the rest is new
