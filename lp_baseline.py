@@ -1392,8 +1392,8 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
-EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "threads",
-                "cuda", "eval_only", "checkpoint")  # fmt: skip
+EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
+                "threads", "cuda", "eval_only", "checkpoint")  # fmt: skip
 
 
 def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:

@@ -300,3 +300,15 @@ def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its
     assert mine.normalizer.count == 70 and np.array_equal(mine.normalizer.mean, theirs.normalizer.mean)
     assert all(torch.equal(p, q) for p, q in zip(mine.actor.parameters(), theirs.actor.parameters(), strict=True))
     assert fresh.graph.n_nodes == 0 and fresh.epoch == 0  # the rest is new
+
+
+def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--plan-on", "oracle",
+            "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
+    out = run_script(*argv, runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "epoch 0, sub-goals planned on the oracle's graph" in out.stdout
+    result = json.loads((tmp_path / "eval_agent_epoch0_seed0_oracle.json").read_text())
+    assert result["planner"] == "oracle" and result["agent"] == "ours" and result["epoch"] == 0
