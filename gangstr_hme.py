@@ -107,12 +107,18 @@ class Args:
     """evaluation goals per class"""
     max_eval_subgoals: int = 9
     """sub-goal segments an evaluation episode may use"""
+    plan_on: str = "agent"
+    """with --eval-only: plan sub-goals on the 'agent' graph (SPEC §9) or the 'oracle' graph (its shortest paths)"""
     threads: int = 0
     """torch CPU threads (0: all cores)"""
     cuda: bool = False
     """train on the GPU if one is available"""
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
+    init_from: str = ""
+    """start a new run from this file's networks and normalizer (a checkpoint, or the paper's agent); rest fresh"""
+    init_prior_count: int = 100_000
+    """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     eval_only: bool = False
@@ -184,7 +190,8 @@ def check_args(a: Args) -> str | None:
         if f.type in ("float", float) and not math.isfinite(value):
             return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
     at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
-                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals")  # fmt: skip
+                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals",
+                  "init_prior_count")  # fmt: skip
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
@@ -205,6 +212,8 @@ def check_args(a: Args) -> str | None:
         return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
     if a.her_strategy not in ("final", "future"):
         return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
+    if a.plan_on not in ("agent", "oracle"):
+        return f"--plan-on must be 'agent' or 'oracle', got {a.plan_on!r}"
     if a.max_path_len < 2:
         return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
     if a.stable_steps > a.segment_len:
@@ -224,17 +233,25 @@ MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 G
 
 
 def check_run_control(a: Args) -> str | None:
-    """--resume, --eval-only, --checkpoint, --capture-video and --runs-dir: what they need."""
+    """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
+    need."""
     if a.resume and a.eval_only:
         return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
+    if a.init_from and (a.resume or a.eval_only):
+        return (f"--init-from {a.init_from!r} starts a new run: not with --resume (which continues one) or "
+                "--eval-only (evaluate the file with --eval-only --checkpoint PATH)")  # fmt: skip
     if a.resume and not os.path.isfile(a.resume):
         return f"--resume: cannot read checkpoint {a.resume!r}"
+    if a.init_from and not os.path.isfile(a.init_from):
+        return f"--init-from: cannot read {a.init_from!r}"
     if a.eval_only and not os.path.isfile(a.checkpoint):
         return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
     if a.checkpoint and not a.eval_only:
         return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
     if a.capture_video and not a.eval_only:
         return "--capture-video films an --eval-only evaluation; add --eval-only --checkpoint PATH"
+    if a.plan_on != "agent" and not a.eval_only:
+        return f"--plan-on {a.plan_on!r} plans an --eval-only evaluation; add --eval-only --checkpoint PATH"
     if not (a.resume or a.eval_only):
         parent = Path(a.runs_dir).absolute()
         while not parent.exists():
@@ -473,6 +490,12 @@ class Normalizer:
             return
         self.mean = self.sum / self.count
         self.std = np.sqrt(np.maximum(self.eps**2, self.sumsq / self.count - self.mean**2))
+
+    def add_prior(self, mean: np.ndarray, std: np.ndarray, count: int):
+        """Statistics known by their mean and std alone (the paper's file), counted as `count` observations
+        that had this mean and std: later data then weighs in against them as against `count` of ours."""
+        mean, std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
+        self.add(count * mean, count * (std**2 + mean**2), count)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x = np.clip(x, -self.clip, self.clip)
@@ -869,6 +892,22 @@ def is_small_step(a: int, b: int, n: int) -> bool:
     return bool(og.is_small_step(og.from_mask(a, n), og.from_mask(b, n)))
 
 
+def oracle_planner(args: Args) -> SemanticGraph:
+    """The oracle graph (SPEC §4) as a semantic graph whose edges all share one SR, the prior: its safest
+    paths are then its shortest ones, drawn uniformly. For evaluation only (--plan-on oracle): it tells
+    the policy's skill apart from the agent graph's, and plans for an agent that has no graph (the paper's)."""
+    oracle = og.OracleGraph(args.n_blocks)
+    heads = np.repeat(np.arange(oracle.n_nodes), np.diff(oracle.indptr))
+    graph = SemanticGraph(args.n_blocks, args)
+    graph.load_state_dict(dict(
+        masks=torch.from_numpy(oracle.masks),
+        edges=torch.from_numpy(np.column_stack([heads, oracle.indices, np.zeros_like(heads)])),  # SR class 0
+        class_keys=torch.zeros((0, 2), dtype=torch.int64),
+        sr=torch.tensor([args.sr_prior], dtype=torch.float64),
+    ))  # fmt: skip
+    return graph
+
+
 # ------------------------------------------------------------------------------------------------
 # HME: the social partner (SPEC §7; paper Sections 3.1 and 3.4)
 # ------------------------------------------------------------------------------------------------
@@ -1201,18 +1240,19 @@ class Learner:
         return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
     # --- evaluation (SPEC §9) -------------------------------------------------------------------
-    def evaluate(self, video: dict | None = None) -> dict[str, float]:
+    def evaluate(self, video: dict | None = None, graph: SemanticGraph | None = None) -> dict[str, float]:
         """Per class, goals drawn uniformly; reset, plan the safest path, follow it deterministically
         with at most max_eval_subgoals segments; success = the last segment ends exactly on the goal.
         Test segments are neither stored nor used to update the graph. Workers split the goals of each
-        class (SPEC §9). `video`, if given, receives the frames of each class's first video_episodes."""
-        a, wins = self.args, np.zeros(len(self.classes))
+        class (SPEC §9). `video`, if given, receives the frames of each class's first video_episodes;
+        `graph`, if given, plans instead of the agent's (the oracle's, for --plan-on oracle)."""
+        a, wins, graph = self.args, np.zeros(len(self.classes)), graph or self.graph
         share = len(range(rank(), a.eval_goals_per_class, world()))  # this worker's goals per class
         for k, (name, members) in enumerate(self.classes.items()):
             for i, goal in enumerate(members[self.rng.integers(len(members), size=share)]):
                 self.env.reset()
                 frames = video.setdefault(name, []) if video is not None and i < a.video_episodes else None
-                path = self.graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
+                path = graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
                 path = [path[0]] + path[1:][-a.max_eval_subgoals :]
                 wins[k] += follow_path(self.env, self.agent, path, len(path) - 1, a, True, frames)[1]
         rates = all_sum(wins) / max(1, a.eval_goals_per_class)
@@ -1323,12 +1363,20 @@ def save_checkpoint(state: dict, path: Path):
 
 
 def load_checkpoint(path: str, flag: str = "--resume") -> dict:
-    """A checkpoint of this script, or exit 2 with one line saying what the file is instead. Loading never
-    runs code from the file (weights_only)."""
+    """A checkpoint of this script, or the paper's agent (see from_paper), or exit 2 with one line saying what
+    the file is instead. Loading never runs code from the file (weights_only, with the paper's numpy arrays
+    as the only addition to what torch allows)."""
     try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
+        with torch.serialization.safe_globals(PAPER_GLOBALS):
+            state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
+        if "Weights only load failed" in str(e):  # torch's refusal of an object outside the allowed ones
+            found = re.search(r"GLOBAL (\S+)|but got (<.*?>)|unrecognized function (.*?)$", str(e), re.MULTILINE)
+            what = next(g for g in found.groups() if g) if found else "an object"
+            checkpoint_error(flag, path, f"refused: it holds {what}, which no checkpoint holds (nothing was run)")
         checkpoint_error(flag, path, f"not a checkpoint ({type(e).__name__}: {e})")
+    if isinstance(state, list):
+        return from_paper(state, path, flag)
     if not isinstance(state, dict) or not all(k in state for k in CHECKPOINT_KEYS):
         checkpoint_error(flag, path, "not a checkpoint of this project (a torch file without its keys)")
     version = state.get("env_version", 1)  # checkpoints older than ENV_VERSION: version 1
@@ -1342,6 +1390,92 @@ def load_checkpoint(path: str, flag: str = "--resume") -> dict:
     except TypeError as e:
         checkpoint_error(flag, path, f"written by another version of {SCRIPT}.py ({e})")
     return state
+
+
+# The paper's trained agent (the authors' hipstr/gangstr.pt): a legacy torch.save of [o_mean, o_std, g_mean,
+# g_std] (float32 numpy arrays) and the actor's and critic's state dicts, named as below.
+# Loading it needs numpy's array unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the
+# array and dtype classes and the float32 dtype: float32 arrays and nothing else.
+_reconstruct = np.zeros(0, np.float32).__reduce__()[0]
+PAPER_GLOBALS = [
+    (_reconstruct, "numpy.core.multiarray._reconstruct"),
+    (_reconstruct, "numpy._core.multiarray._reconstruct"),
+    np.ndarray,
+    np.dtype,
+    type(np.dtype(np.float32)),
+]
+PAPER_LAYERS = (  # (the authors' layer, our network and layer): SPEC §5's roles in order. Two layers of theirs
+    # mapped to one of ours are stacked in this order: our head's mean rows above its log-std rows.
+    ("phi_actor.linear1", "actor", "node.hidden"),
+    ("phi_actor.linear2", "actor", "node.out"),
+    ("rho_actor.linear1", "actor", "head.hidden"),
+    ("rho_actor.mean_linear", "actor", "head.out"),
+    ("rho_actor.log_std_linear", "actor", "head.out"),
+    ("mp_critic.linear1", "critic", "message.hidden"),
+    ("mp_critic.linear2", "critic", "message.out"),
+    ("phi_critic.linear1", "critic", "q_nodes.0.hidden"),
+    ("phi_critic.linear2", "critic", "q_nodes.0.out"),
+    ("phi_critic.linear4", "critic", "q_nodes.1.hidden"),
+    ("phi_critic.linear5", "critic", "q_nodes.1.out"),
+    ("rho_critic.linear1", "critic", "q_heads.0.hidden"),
+    ("rho_critic.linear3", "critic", "q_heads.0.out"),
+    ("rho_critic.linear4", "critic", "q_heads.1.hidden"),
+    ("rho_critic.linear6", "critic", "q_heads.1.out"),
+)
+
+
+def from_paper(items: list, path: str, flag: str) -> dict:
+    """The paper's file as {actor, critic: our state dicts; normalizer: mean and std; n_blocks} (read from
+    the observation size), or exit 2 with one line. It holds no target network, optimizer, graph or
+    counters; its goals were not normalized (g_mean 0, g_std 1), as SPEC §5 has it."""
+    arrays, nets = items[:4], items[4:]
+    if len(items) != 6 or not all(isinstance(x, np.ndarray) and x.ndim == 1 for x in arrays) or \
+            not all(isinstance(x, dict) for x in nets):  # fmt: skip
+        checkpoint_error(flag, path, "not a checkpoint of this project, nor the paper's agent (a list)")
+    o_mean, o_std, g_mean, g_std = arrays
+    n = (len(o_mean) - BODY) // PER_BLOCK
+    if not og.MIN_BLOCKS <= n <= og.MAX_BLOCKS or {len(o_mean), len(o_std)} != {BODY + PER_BLOCK * n} or \
+            {len(g_mean), len(g_std)} != {og.config_dim(n)}:  # fmt: skip
+        checkpoint_error(flag, path, f"the paper's format, but statistics of sizes {len(o_mean)} and {len(g_mean)}")
+    if (g_mean != 0).any() or (g_std != 1).any():
+        checkpoint_error(flag, path, "the paper's format, but with normalized goals (SPEC §5 normalizes none)")
+    theirs = dict(actor=nets[0], critic=nets[1])
+    for net, tensors in theirs.items():
+        expected = {f"{layer}.{p}" for layer, of, _ in PAPER_LAYERS if of == net for p in ("weight", "bias")}
+        if set(tensors) != expected or not all(isinstance(v, torch.Tensor) for v in tensors.values()):
+            odd = sorted(set(tensors) ^ expected) or ["a value that is not a tensor"]
+            checkpoint_error(flag, path, f"the paper's format, but its {net} differs: {', '.join(odd)}")
+    state = dict(format="paper", n_blocks=n, normalizer=dict(mean=o_mean, std=o_std), actor={}, critic={})
+    for layer, net, ours in PAPER_LAYERS:
+        for p in ("weight", "bias"):
+            before, weights = state[net].get(f"{ours}.{p}"), theirs[net][f"{layer}.{p}"]
+            try:
+                state[net][f"{ours}.{p}"] = weights if before is None else torch.cat([before, weights])
+            except RuntimeError as e:  # stacked layers of different widths
+                checkpoint_error(flag, path, f"the paper's format, but {layer}.{p}: {e}")
+    return state
+
+
+def blocks_of(state: dict) -> int:
+    return state["n_blocks"] if state.get("format") == "paper" else state["args"]["n_blocks"]
+
+
+def load_weights(agent: SAC, state: dict, args: Args, path: str, flag: str):
+    """A checkpoint's networks and normalizer (ours or the paper's), nothing else: what --init-from starts from,
+    and all that the paper's file holds. The target critic is a copy of the critic, as in any new run (the
+    paper's file has none). The paper's statistics come without a count: they weigh as --init-prior-count
+    observations (Normalizer.add_prior); ours keep their own count."""
+    try:
+        agent.actor.load_state_dict(state["actor"])
+        agent.critic.load_state_dict(state["critic"])
+    except (KeyError, RuntimeError) as e:
+        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
+    agent.critic_target.load_state_dict(agent.critic.state_dict())
+    stats = state["normalizer"]
+    if "count" in stats:
+        agent.normalizer.add(stats["sum"].numpy(), stats["sumsq"].numpy(), stats["count"])
+    else:
+        agent.normalizer.add_prior(stats["mean"], stats["std"], args.init_prior_count)
 
 
 def restore(learner, state: dict, path: str, flag: str):
@@ -1360,8 +1494,8 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
-EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "threads",
-                "cuda", "eval_only", "checkpoint")  # fmt: skip
+EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
+                "threads", "cuda", "eval_only", "checkpoint")  # fmt: skip
 
 
 def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
@@ -1378,6 +1512,16 @@ def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) ->
     # unless given again (threads, say: a different thread count changes float sums).
     keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
     return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
+
+
+def args_with_blocks_of(args: Args, given: set[str], state: dict, path: str, flag: str) -> Args:
+    """--init-from (a new run) and --eval-only of the paper's file (which holds no arguments): this command
+    line's arguments, with the file's block count; exit 2 if --n-blocks says otherwise."""
+    n = blocks_of(state)
+    if "n_blocks" in given and args.n_blocks != n:
+        print(f"error: {flag}: --n-blocks {args.n_blocks}, but {path!r} holds a {n}-block agent", file=sys.stderr)
+        sys.exit(2)
+    return dataclasses.replace(args, n_blocks=n)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1496,24 +1640,33 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     state.pop("buffer", None)  # evaluation needs no replay
     args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
     learner = Learner(args, device)
-    restore(learner, state, args.checkpoint, "--checkpoint")
+    paper = state.get("format") == "paper"
+    if paper:  # networks and normalizer are all it holds
+        load_weights(learner.agent, state, args, args.checkpoint, "--checkpoint")
+    else:
+        restore(learner, state, args.checkpoint, "--checkpoint")
     learner.rng = np.random.default_rng(args.seed + rank())  # the evaluation's own seed, not the run's
     learner.env.reset(seed=args.seed + rank())
     video = {} if args.capture_video and rank() == 0 else None
     t = time.perf_counter()
-    sr = learner.evaluate(video)
+    sr = learner.evaluate(video, oracle_planner(args) if args.plan_on == "oracle" else None)
     if rank() > 0:
         return 0
     checkpoint = Path(args.checkpoint).resolve()
-    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_epoch{learner.epoch}_seed{args.seed}")
-    result = dict(checkpoint=str(checkpoint), epoch=learner.epoch, seed=args.seed,
-                  goals_per_class=args.eval_goals_per_class, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
+    agent = "paper" if paper else f"epoch{learner.epoch}"  # the paper's file does not say its epoch
+    planner = "_oracle" if args.plan_on == "oracle" else ""
+    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{planner}")
+    result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
+                  epoch=None if paper else learner.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
+                  planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(result, indent=2))
     os.replace(tmp, out)
     for name in learner.classes:
         print(f"{name:>6}  SR {sr[name]:.3f}")
-    print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, epoch {learner.epoch})")
+    who = "the paper's agent" if paper else f"epoch {learner.epoch}"
+    print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, {who}, "
+          f"sub-goals planned on the {args.plan_on}'s graph)")  # fmt: skip
     print(f"saved {out}")
     for name, frames in (video or {}).items():
         path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
@@ -1672,8 +1825,9 @@ def train(learner: Learner, logger: Logger | None, ckpt_path: Path, stopper: Sto
     return 0
 
 
-def start_run(args: Args, state: dict | None, device) -> int:
-    """A new run folder, or the checkpoint's when resuming; then train."""
+def start_run(args: Args, state: dict | None, device, init: dict | None = None) -> int:
+    """A new run folder, or the checkpoint's when resuming; then train. A new run may start from the
+    networks and normalizer of `init` (--init-from)."""
     if state is None:
         run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
         if rank() == 0:
@@ -1689,6 +1843,9 @@ def start_run(args: Args, state: dict | None, device) -> int:
     if state is not None:
         restore(learner, state, args.resume, "--resume")
         progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
+    elif init is not None:
+        load_weights(learner.agent, init, args, args.init_from, "--init-from")
+        progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
     logger = Logger(run_dir, learner.rows, resumed=state is not None) if rank() == 0 else None
     progress(f"run folder {run_dir} | {args.n_blocks} blocks | sp-ratio {args.sp_ratio} | {world()} worker(s) on "
              f"{device}", final=True)  # fmt: skip
@@ -1700,21 +1857,29 @@ def start_run(args: Args, state: dict | None, device) -> int:
 
 
 def main(argv=None) -> int:
-    args, state = parse_args(argv), None
+    args, state, init = parse_args(argv), None, None
     if args.resume or args.eval_only:
-        flag = "--resume" if args.resume else "--checkpoint"
-        state = load_checkpoint(args.resume or args.checkpoint, flag)
-        args = args_from_checkpoint(args, given_flags(argv), state, flag)
+        flag, path = ("--resume", args.resume) if args.resume else ("--checkpoint", args.checkpoint)
+        state = load_checkpoint(path, flag)
+        if state.get("format") == "paper" and args.resume:
+            checkpoint_error(flag, path, "the paper's agent, not a run: train from it with --init-from PATH")
+        if state.get("format") == "paper":
+            args = args_with_blocks_of(args, given_flags(argv), state, path, flag)
+        else:
+            args = args_from_checkpoint(args, given_flags(argv), state, flag)
         if args.resume and state["counters"]["epoch"] >= args.n_epochs:
             print(f"nothing to do: {args.resume} has finished epoch {state['counters']['epoch'] - 1} "
                   f"(--n-epochs {args.n_epochs}); give a larger --n-epochs to train on")  # fmt: skip
             return 0
+    elif args.init_from:
+        init = load_checkpoint(args.init_from, "--init-from")
+        args = args_with_blocks_of(args, given_flags(argv), init, args.init_from, "--init-from")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = init_workers(args)  # under torchrun: this worker's device, and the job joined
     torch.manual_seed(args.seed + rank())
     try:
-        return evaluate_checkpoint(args, state, device) if args.eval_only else start_run(args, state, device)
+        return evaluate_checkpoint(args, state, device) if args.eval_only else start_run(args, state, device, init)
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()

@@ -1,0 +1,314 @@
+"""The paper's own trained agent (the authors' hipstr/gangstr.pt, issue 15): its file format loads into our
+networks (--checkpoint, --init-from), a file holding anything else is refused unrun, evaluation can plan on
+the oracle graph (--plan-on oracle), and --init-from starts a run that resumes like any other."""
+
+import csv
+import json
+import os
+import pathlib
+import subprocess
+import sys
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+
+import gangstr_hme as gh
+import oracle_graph as og
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16", "--segment-len", "10",
+        "--stable-steps", "3", "--eval-goals-per-class", "1", "--threads", "1", "--sp-ratio", "0.3"]  # fmt: skip
+TIMING = ("time_", "steps_per_second")
+
+
+def run_script(*args, runs_dir, timeout=180):
+    cmd = [sys.executable, "gangstr_hme.py", *args, "--runs-dir", str(runs_dir)]
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+def read_rows(run_dir: Path) -> list[dict]:
+    with (run_dir / "progress.csv").open() as f:
+        return [{k: v for k, v in row.items() if not k.startswith(TIMING)} for row in csv.DictReader(f)]
+
+
+def our_agent(n_blocks: int, seed: int = 0) -> gh.SAC:
+    """Randomly initialised networks and a normalizer that has seen some (non-standard) observations."""
+    torch.manual_seed(seed)
+    agent = gh.SAC(gh.Args(n_blocks=n_blocks), 10 + 15 * n_blocks, torch.device("cpu"))
+    agent.normalizer.update(np.random.default_rng(seed).normal(size=(300, 10 + 15 * n_blocks)) * 2 + 1)
+    return agent
+
+
+def authors_state_dict(layers: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> OrderedDict:
+    """The state dict of a module holding nn.Linear layers under the authors' names ("phi_actor.linear1"):
+    what their torch.save(actor.state_dict()) wrote, _metadata included."""
+    root = nn.Module()
+    for name, (weight, bias) in layers.items():
+        parent, child = name.split(".")
+        if not hasattr(root, parent):
+            root.add_module(parent, nn.Module())
+        linear = nn.Linear(1, 1)
+        linear.weight, linear.bias = nn.Parameter(weight.clone()), nn.Parameter(bias.clone())
+        getattr(root, parent).add_module(child, linear)
+    return root.state_dict()
+
+
+def write_paper_file(path: Path, agent: gh.SAC, replace: dict | None = None) -> list:
+    """The authors' file from our agent: a legacy (pre-zip) torch.save of [o_mean, o_std, g_mean, g_std, actor,
+    critic], float32 numpy arrays and their layer names (gh.PAPER_LAYERS inverted: a layer of ours that two
+    of theirs map to is split in equal parts, in the table's order). `replace` swaps items by index."""
+    ours = {"actor": agent.actor.state_dict(), "critic": agent.critic.state_dict()}
+    parts: dict[tuple[str, str], list[str]] = {}
+    for theirs, net, layer in gh.PAPER_LAYERS:
+        parts.setdefault((net, layer), []).append(theirs)
+    layers = {"actor": {}, "critic": {}}
+    for (net, layer), names in parts.items():
+        weights = ours[net][f"{layer}.weight"].chunk(len(names))
+        biases = ours[net][f"{layer}.bias"].chunk(len(names))
+        layers[net].update(zip(names, zip(weights, biases, strict=True), strict=True))
+    dim = og.config_dim(agent.gi.n)
+    items = [agent.normalizer.mean.astype(np.float32), agent.normalizer.std.astype(np.float32),
+             np.zeros(dim, np.float32), np.ones(dim, np.float32),
+             authors_state_dict(layers["actor"]), authors_state_dict(layers["critic"])]  # fmt: skip
+    for i, item in (replace or {}).items():
+        items[i] = item
+    torch.save(items, path, _use_new_zipfile_serialization=False)
+    return items
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. The file format
+# ------------------------------------------------------------------------------------------------
+def test_the_papers_file_loads_into_our_networks_with_identical_actions_and_q_values(tmp_path):
+    original = our_agent(5)
+    items = write_paper_file(tmp_path / "gangstr.pt", original)
+    assert len(items[4]) == 10 and items[4]["rho_actor.mean_linear.weight"].shape == (4, 256)  # the authors' sizes
+    assert items[5]["phi_critic.linear4.weight"].shape == (256, 53) and items[0].shape == (85,)
+    state = gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--checkpoint")
+    assert state["format"] == "paper" and state["n_blocks"] == 5
+    loaded = our_agent(5, seed=1)  # other weights and statistics, all overwritten
+    loaded.normalizer = gh.Normalizer(85)
+    gh.load_weights(loaded, state, gh.Args(n_blocks=5), "gangstr.pt", "--checkpoint")
+
+    rng = np.random.default_rng(2)
+    obs = (rng.normal(size=(8, 85)) * 4 + 1).astype(np.float32)  # some values beyond the +-5 clip
+    ag = np.where(rng.random((8, 30)) < 0.3, 1.0, -1.0).astype(np.float32)
+    g = np.where(rng.random((8, 30)) < 0.3, 1.0, -1.0).astype(np.float32)
+    action = torch.as_tensor(rng.uniform(-1, 1, size=(8, 4)), dtype=torch.float32)
+    # The authors' normalization with their file's statistics (SPEC §5): clip raw to +-5, standardize, clip.
+    normalized = np.clip((np.clip(obs, -5, 5) - items[0]) / items[1], -5, 5).astype(np.float32)
+
+    def outputs(agent: gh.SAC, o: np.ndarray):
+        body, blocks = gh.split_obs(torch.as_tensor(o), 5)
+        with torch.no_grad():
+            msg = agent.critic.messages(agent.gi, blocks, torch.as_tensor(g - ag))
+            mean, log_std = agent.actor(body, blocks, msg)
+            return mean, log_std, torch.stack(agent.critic.q(body, blocks, action, msg))
+
+    expected = outputs(original, normalized)  # our original networks, not through the loader
+    for got, want in zip(outputs(loaded, loaded.normalizer(obs)), expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    acts = np.stack([loaded.act(obs[i], ag[i], g[i], deterministic=True) for i in range(8)])
+    torch.testing.assert_close(torch.as_tensor(acts), torch.tanh(expected[0]), rtol=1e-6, atol=1e-6)
+    for p, q in zip(loaded.critic_target.parameters(), original.critic.parameters(), strict=True):
+        assert torch.equal(p, q)  # the file has no target critic: it starts as a copy of the critic
+
+
+class TouchOnLoad:
+    """Unpickling this creates `marker`: what a file that runs code on loading would do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return pathlib.Path.touch, (self.marker,)
+
+
+class SystemOnLoad(TouchOnLoad):
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+class Weights(OrderedDict):
+    """A foreign container: a dict subclass that a state dict never is."""
+
+
+@pytest.mark.parametrize("foreign", ["Path.touch", "os.system", "OrderedDict subclass"])
+def test_a_paper_file_holding_a_foreign_object_is_refused_with_one_line_and_nothing_in_it_runs(tmp_path, foreign):
+    marker = tmp_path / "marker"
+    payload = {"Path.touch": TouchOnLoad, "os.system": SystemOnLoad}.get(foreign)
+    path = tmp_path / "gangstr.pt"
+    if payload is None:
+        items = write_paper_file(path, our_agent(3))
+        write_paper_file(path, our_agent(3), replace={5: Weights(items[5])})
+    else:
+        write_paper_file(path, our_agent(3), replace={5: payload(marker)})
+    for argv in (["--eval-only", "--checkpoint", str(path)], ["--init-from", str(path)]):
+        out = run_script(*argv, "--threads", "1", runs_dir=tmp_path / "runs")
+        assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        assert str(path) in out.stderr and "refused" in out.stderr and "weights_only=False" not in out.stderr
+        assert not marker.exists() and not (tmp_path / "runs").exists()
+    if payload is not None:  # the file was live: an unsafe load runs it
+        torch.load(path, weights_only=False)
+        assert marker.exists()
+
+
+@pytest.mark.parametrize(
+    "change, says",
+    [
+        (
+            lambda items: items[4].pop("rho_actor.log_std_linear.bias"),
+            "its actor differs: rho_actor.log_std_linear.bias",
+        ),
+        (lambda items: items[5].update(extra=torch.zeros(1)), "its critic differs: extra"),
+        (lambda items: items.__setitem__(3, items[3] * 2), "normalized goals"),
+        (lambda items: items.__setitem__(0, np.zeros(86, np.float32)), "statistics of sizes 86 and 30"),
+        (lambda items: items.pop(), "nor the paper's agent"),
+    ],
+    ids=["missing layer", "extra tensor", "normalized goals", "observation size", "5 items"],
+)
+def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path, change, says, capsys):
+    items = write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
+    change(items)
+    torch.save(items, tmp_path / "gangstr.pt", _use_new_zipfile_serialization=False)
+    with pytest.raises(SystemExit) as e:
+        gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--checkpoint")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and says in err, err
+
+
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["--eval-only", "--checkpoint", "{paper}", "--n-blocks", "3"], "--n-blocks 3, but"),
+        (["--init-from", "{paper}", "--n-blocks", "4"], "--n-blocks 4, but"),
+        (["--resume", "{paper}"], "the paper's agent, not a run"),
+        (["--init-from", "{paper}", "--resume", "{paper}"], "--init-from"),
+        (["--init-from", "{paper}", "--eval-only", "--checkpoint", "{paper}"], "--init-from"),
+        (["--init-from", "/nonexistent/gangstr.pt"], "/nonexistent/gangstr.pt"),
+        (["--init-from", "{paper}", "--init-prior-count", "0"], "--init-prior-count must be at least 1, got 0"),
+        (["--eval-only", "--checkpoint", "{paper}", "--plan-on", "partner"], "--plan-on must be 'agent' or 'oracle'"),
+        (["--plan-on", "oracle"], "--plan-on 'oracle' plans an --eval-only evaluation"),
+    ],
+)
+def test_bad_uses_of_the_new_flags_exit_2_with_one_line_naming_them(tmp_path, argv, says, capsys):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
+    argv = [a.format(paper=tmp_path / "gangstr.pt") for a in argv]
+    with pytest.raises(SystemExit) as e:
+        gh.main([*argv, "--threads", "1", "--runs-dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert says in err and not (tmp_path / "runs").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Evaluation on the oracle graph, with videos
+# ------------------------------------------------------------------------------------------------
+def test_oracle_plans_are_shortest_paths_along_oracle_edges():
+    args = gh.Args(n_blocks=3)
+    planner, oracle = gh.oracle_planner(args), og.OracleGraph(3)
+    start = int(og.to_mask(og.make_config(3)))
+    hops = og.bfs_hops(oracle.indptr, oracle.indices, int(oracle.index(og.make_config(3))))  # independent BFS
+    rng = np.random.default_rng(0)
+    for name, members in og.evaluation_classes(3).items():
+        for goal in members:
+            path = planner.plan(start, int(og.to_mask(goal)), rng, explore=False)
+            assert len(path) - 1 == hops[oracle.index(goal)], name
+            for a, b in zip(path, path[1:], strict=False):
+                assert og.to_mask(oracle.neighbours(og.from_mask(a, 3))).tolist().count(b) == 1
+
+
+def test_eval_only_of_the_papers_file_plans_on_the_oracle_graph_and_says_so_in_table_json_and_videos(tmp_path, gl):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
+    argv = ["--eval-only", "--checkpoint", str(tmp_path / "gangstr.pt"), "--plan-on", "oracle", "--capture-video",
+            "--video-episodes", "1", "--eval-goals-per-class", "1", "--max-eval-subgoals", "2", "--segment-len", "10",
+            "--threads", "1"]  # fmt: skip
+    out = run_script(*argv, runs_dir=tmp_path / "runs")
+    assert out.returncode == 0, out.stderr
+    assert "the paper's agent, sub-goals planned on the oracle's graph" in out.stdout
+    classes = list(og.evaluation_classes(5))
+    result = json.loads((tmp_path / "eval_gangstr_paper_seed0_oracle.json").read_text())
+    assert result["planner"] == "oracle" and result["agent"] == "the paper's" and result["epoch"] is None
+    assert set(result["sr"]) == {*classes, "global"}
+    for name in classes:
+        video = tmp_path / "videos" / f"eval_gangstr_paper_seed0_oracle_{name}.mp4"
+        assert video.stat().st_size > 0 and f"{video.name} (" in out.stdout
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. --init-from: training from given weights and normalizer
+# ------------------------------------------------------------------------------------------------
+def test_the_papers_statistics_count_as_init_prior_count_observations_of_prior_data(tmp_path):
+    items = write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
+    state = gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--init-from")
+    agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
+    gh.load_weights(agent, state, gh.Args(n_blocks=3, init_prior_count=1000), "gangstr.pt", "--init-from")
+    x = np.random.default_rng(5).uniform(-3, 4, size=(250, 55))
+    agent.normalizer.update(x)
+    # Pooling 1000 observations of the file's mean and std with these 250: the pooled mean and variance.
+    mean, std = items[0].astype(np.float64), items[1].astype(np.float64)
+    pooled_mean = (1000 * mean + x.sum(0)) / 1250
+    pooled_var = (1000 * (std**2 + mean**2) + (x**2).sum(0)) / 1250 - pooled_mean**2
+    assert agent.normalizer.count == 1250
+    np.testing.assert_allclose(agent.normalizer.mean, pooled_mean, rtol=1e-9)
+    np.testing.assert_allclose(agent.normalizer.std, np.sqrt(pooled_var), rtol=1e-9)
+
+
+def test_init_from_starts_a_new_run_from_the_files_networks_and_normalizer_only(tmp_path):
+    original = our_agent(3)
+    write_paper_file(tmp_path / "gangstr.pt", original)
+    out = run_script("--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--n-updates", "0", "--n-epochs", "1",
+                     "--init-prior-count", "500", runs_dir=tmp_path / "runs")  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (run,) = (tmp_path / "runs").iterdir()  # a new run folder; 3 blocks, read from the file
+    config = json.loads((run / "config.json").read_text())
+    assert config["init_from"] == str(tmp_path / "gangstr.pt") and config["n_blocks"] == 3
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    for net in ("actor", "critic", "critic_target"):  # no updates: still the file's weights
+        want = (original.critic if net == "critic_target" else getattr(original, net)).state_dict()
+        assert all(torch.equal(state[net][k], want[k]) for k in want), net
+    assert state["normalizer"]["count"] == 500 + 2 * 3 * 11  # the prior, then 2 cycles x 3 segments x 11 obs
+    assert state["counters"]["epoch"] == 1 and state["actor_opt"]["state"] == {}  # fresh Adam, never stepped
+
+
+def test_a_run_started_with_init_from_resumes_into_the_uninterrupted_run(tmp_path):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
+    start = ["--init-from", str(tmp_path / "gangstr.pt"), *TINY]
+    assert run_script(*start, "--n-epochs", "2", runs_dir=tmp_path / "a").returncode == 0
+    assert run_script(*start, "--n-epochs", "1", runs_dir=tmp_path / "b").returncode == 0
+    (run_a,), (run_b,) = (tmp_path / "a").iterdir(), (tmp_path / "b").iterdir()
+    out = run_script("--resume", str(run_b / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
+    assert out.returncode == 0, out.stderr
+    rows = read_rows(run_a)
+    assert len(rows) == 2 and read_rows(run_b) == rows
+
+
+def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its_count(tmp_path):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    learner.agent.normalizer.update(np.random.default_rng(0).normal(size=(70, 55)))
+    learner.graph.add_config(int(og.to_mask(og.make_config(3))))
+    learner.epoch = 4
+    gh.save_checkpoint(learner.state_dict(), tmp_path / "ours.pt")
+    state = gh.load_checkpoint(str(tmp_path / "ours.pt"), "--init-from")
+    fresh = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, seed=1), torch.device("cpu"))
+    gh.load_weights(fresh.agent, state, fresh.args, "ours.pt", "--init-from")
+    mine, theirs = fresh.agent, learner.agent
+    assert mine.normalizer.count == 70 and np.array_equal(mine.normalizer.mean, theirs.normalizer.mean)
+    assert all(torch.equal(p, q) for p, q in zip(mine.actor.parameters(), theirs.actor.parameters(), strict=True))
+    assert fresh.graph.n_nodes == 0 and fresh.epoch == 0  # the rest is new
+
+
+def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--plan-on", "oracle",
+            "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
+    out = run_script(*argv, runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "epoch 0, sub-goals planned on the oracle's graph" in out.stdout
+    result = json.loads((tmp_path / "eval_agent_epoch0_seed0_oracle.json").read_text())
+    assert result["planner"] == "oracle" and result["agent"] == "ours" and result["epoch"] == 0
