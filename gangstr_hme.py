@@ -220,6 +220,10 @@ def check_args(a: Args) -> str | None:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
+    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
+    replay_bytes = a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)
+    if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
+        return f"--buffer-size {a.buffer_size} needs {replay_bytes / 2**30:.1f} GiB, more memory than this machine has"
     if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
@@ -933,9 +937,11 @@ class SocialPartner:
         """Agent nodes that are oracle nodes with an oracle neighbour the agent has no edge to."""
         return np.unique(self.edge_heads[self._untried(graph)])
 
-    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator) -> int | None:
-        """Uniform among the stepping stones reachable in the agent graph from `current` (included)."""
+    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator, elsewhere: bool = False):
+        """Uniform among the stepping stones reachable in the agent graph from `current` (included,
+        unless `elsewhere`: a goal the agent must move to)."""
         stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
+        stones = stones[stones != current] if elsewhere else stones
         return int(stones[rng.integers(len(stones))]) if len(stones) else None
 
     def beyond_goal(self, graph: SemanticGraph, config: int, rng: np.random.Generator) -> int | None:
@@ -1104,7 +1110,8 @@ class Learner:
             self.env.reset()
             self.goals += 1
             here, left = current_config(self.env), a.n_segments - len(segments)
-            frontier = self.sp.frontier_goal(self.graph, here, self.rng)
+            only_frontier = a.strategy == "frontier"  # its goal is the journey: one the agent must move to
+            frontier = self.sp.frontier_goal(self.graph, here, self.rng, elsewhere=only_frontier)
             base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
             if a.strategy == "frontier-and-beyond":
                 segs, arrived = [], True
@@ -1121,7 +1128,7 @@ class Learner:
             else:  # --strategy beyond: the frontier stays hidden; one goal beyond it, retried until reached
                 segs = self.attempt_until_reached(self.sp.beyond_goal(self.graph, base, self.rng), left)
             if not segs:
-                break  # nothing to propose (or, --strategy frontier, already there): the rest is autotelic
+                break  # nothing to propose: the rest of the cycle is autotelic
             segments += segs
         return segments + self.autotelic_cycle(a.n_segments - len(segments))
 
@@ -1495,7 +1502,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint")  # fmt: skip
+                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name")  # fmt: skip
 
 
 def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
@@ -1545,7 +1552,7 @@ class Logger:
             self.add_scalars(rows[-1])
 
     def log(self, row: dict):
-        new = not self.path.exists()
+        new = not self.path.exists() or self.path.stat().st_size == 0
         with self.path.open("a", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(row))
             if new:
@@ -1565,12 +1572,14 @@ class Logger:
 
 def write_csv(path: Path, rows: list[dict]):
     """progress.csv holding exactly these rows, written then renamed."""
+    if not rows:  # stopped within the first epoch: no row yet, and no file (the next row writes the header)
+        path.unlink(missing_ok=True)
+        return
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as f:
-        if rows:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
     os.replace(tmp, path)
 
 
@@ -1633,7 +1642,7 @@ def claim_name(folder: Path, stem: str) -> Path:
 def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     """--eval-only: the saved agent's SR per class (SPEC §9), printed and saved as JSON beside the
     checkpoint, named after it; with --capture-video, an mp4 per class of its first evaluation episodes."""
-    if args.capture_video and rank() == 0 and (why := rendering_problem()):
+    if args.capture_video and (why := rendering_problem()):  # every worker: all leave together
         print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
               "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
         return 2
@@ -1660,8 +1669,13 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
                   epoch=None if paper else learner.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
     tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, out)
+    try:
+        tmp.write_text(json.dumps(result, indent=2))
+        os.replace(tmp, out)
+    except BaseException:  # Ctrl-C, a full disk: no empty result left behind
+        out.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+        raise
     for name in learner.classes:
         print(f"{name:>6}  SR {sr[name]:.3f}")
     who = "the paper's agent" if paper else f"epoch {learner.epoch}"

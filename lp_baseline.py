@@ -218,6 +218,10 @@ def check_args(a: Args) -> str | None:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
+    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
+    replay_bytes = a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)
+    if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
+        return f"--buffer-size {a.buffer_size} needs {replay_bytes / 2**30:.1f} GiB, more memory than this machine has"
     if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
@@ -263,6 +267,8 @@ def check_sampler_args(a: Args) -> str | None:
     """The goal sampler's options (LP, SPEC §8)."""
     if a.lp_window < 2 or a.lp_min_outcomes < 2:
         return f"--lp-window and --lp-min-outcomes must be at least 2, got {a.lp_window}, {a.lp_min_outcomes}"
+    if a.lp_min_outcomes > a.lp_window:  # LP would stay 0 for ever: the window never holds enough outcomes
+        return f"--lp-min-outcomes must be at most --lp-window ({a.lp_window}), got {a.lp_min_outcomes}"
     if not 0.0 <= a.lp_uniform_prob <= 1.0:
         return f"--lp-uniform-prob must be in [0, 1], got {a.lp_uniform_prob}"
     return None
@@ -1393,7 +1399,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint")  # fmt: skip
+                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name")  # fmt: skip
 
 
 def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
@@ -1443,7 +1449,7 @@ class Logger:
             self.add_scalars(rows[-1])
 
     def log(self, row: dict):
-        new = not self.path.exists()
+        new = not self.path.exists() or self.path.stat().st_size == 0
         with self.path.open("a", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(row))
             if new:
@@ -1463,12 +1469,14 @@ class Logger:
 
 def write_csv(path: Path, rows: list[dict]):
     """progress.csv holding exactly these rows, written then renamed."""
+    if not rows:  # stopped within the first epoch: no row yet, and no file (the next row writes the header)
+        path.unlink(missing_ok=True)
+        return
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as f:
-        if rows:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
     os.replace(tmp, path)
 
 
@@ -1531,7 +1539,7 @@ def claim_name(folder: Path, stem: str) -> Path:
 def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     """--eval-only: the saved agent's SR per class (SPEC §9), printed and saved as JSON beside the
     checkpoint, named after it; with --capture-video, an mp4 per class of its first evaluation episodes."""
-    if args.capture_video and rank() == 0 and (why := rendering_problem()):
+    if args.capture_video and (why := rendering_problem()):  # every worker: all leave together
         print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
               "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
         return 2
@@ -1558,8 +1566,13 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
                   epoch=None if paper else learner.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
     tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, out)
+    try:
+        tmp.write_text(json.dumps(result, indent=2))
+        os.replace(tmp, out)
+    except BaseException:  # Ctrl-C, a full disk: no empty result left behind
+        out.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+        raise
     for name in learner.classes:
         print(f"{name:>6}  SR {sr[name]:.3f}")
     who = "the paper's agent" if paper else f"epoch {learner.epoch}"

@@ -1,16 +1,17 @@
 """Stop a run at random moments and resume it: is the result the uninterrupted run? For each of SIGINT,
 SIGTERM and kill -9, --trials runs of tests/test_gangstr.py's STOPPED configuration (1 process, CPU,
-fixed seed, the social partner on) are stopped at a random moment after their first checkpoint, and
---write-trials more the moment a checkpoint write begins (checkpoint.pt.tmp appears); each is resumed
-to the end and its progress.csv compared with the uninterrupted run's in every non-timing column, with
-every epoch once. Not part of the test suite (the suite stops one run per signal).
+fixed seed, the social partner on) are stopped at a random moment (a random cycle of a random epoch,
+plus a random delay), and --write-trials more the moment a checkpoint write begins
+(checkpoint.pt.tmp appears); each is resumed to the end, and its progress.csv (every non-timing
+column) and TensorBoard rows are compared with the uninterrupted run's, every epoch once. Prints each
+trial's exit code; not part of the test suite (which stops one run per signal).
 
     python benchmarks/stress_interrupts.py [--trials 10] [--write-trials 4]
 """
 
 import argparse
+import collections
 import csv
-import os
 import random
 import signal
 import subprocess
@@ -21,7 +22,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-from test_gangstr import STOPPED, TIMING  # noqa: E402
+from test_gangstr import STOPPED, TIMING, tensorboard_rows  # noqa: E402
+
+EPOCHS, CYCLES = 6, 3  # STOPPED's
 
 
 def rows(run: Path) -> list[dict]:
@@ -29,30 +32,34 @@ def rows(run: Path) -> list[dict]:
         return [{k: v for k, v in r.items() if not k.startswith(TIMING)} for r in csv.DictReader(f)]
 
 
-def run_to_end(runs: Path, sig: signal.Signals | None, moment: str, rng: random.Random) -> tuple[list[dict], str]:
+def trial(runs: Path, sig: signal.Signals | None, moment: str, rng: random.Random) -> tuple[Path, str]:
+    """Run STOPPED, stop it with sig at the moment, resume it to the end; (run folder, what happened)."""
     cmd = [sys.executable, "-u", "gangstr_hme.py", *STOPPED, "--runs-dir", str(runs)]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    what = "not stopped"
+    what = ""
     if sig is not None:
+        first = 1 if sig == signal.SIGKILL else 0  # kill -9 needs an epoch's checkpoint to resume from
+        at = "epoch   0" if moment == "write" else f"  epoch {rng.randint(first, EPOCHS - 2)} cycle "
+        at += "" if moment == "write" else f"{rng.randint(1, CYCLES)}/{CYCLES}"
         for line in proc.stdout:
-            if line.startswith("epoch   0"):  # the first checkpoint exists
+            if line.startswith(at):
                 break
         (run,) = runs.iterdir()
-        if moment == "write":
+        if moment == "write":  # the next checkpoint write
             while proc.poll() is None and not (run / "checkpoint.pt.tmp").exists():
-                time.sleep(0.0002)
+                time.sleep(0.0001)
         else:
-            time.sleep(rng.uniform(0.0, 1.5))
+            time.sleep(rng.uniform(0.0, 0.3))
         during_write = (run / "checkpoint.pt.tmp").exists()
         proc.send_signal(sig)
-        what = f"exit {proc.wait(timeout=120)}" + (" (signal during a checkpoint write)" if during_write else "")
+        what = f"at '{at.strip()}': exit {proc.wait(timeout=120)}" + (", during a checkpoint write" * during_write)
     proc.communicate(timeout=120)
     (run,) = runs.iterdir()
     if proc.returncode != 0:
         out = subprocess.run([sys.executable, "gangstr_hme.py", "--resume", str(run / "checkpoint.pt")], cwd=ROOT,
                              capture_output=True, text=True, timeout=300)  # fmt: skip
         assert out.returncode == 0, out.stderr
-    return rows(run), what
+    return run, what
 
 
 def main():
@@ -61,19 +68,24 @@ def main():
     parser.add_argument("--write-trials", type=int, default=4, help="moments a checkpoint write begins, per signal")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    rng = random.Random(args.seed)
+    rng, outcomes = random.Random(args.seed), collections.Counter()
     with tempfile.TemporaryDirectory() as tmp:
-        reference, _ = run_to_end(Path(tmp) / "reference", None, "", rng)
-        failures = 0
+        reference = trial(Path(tmp) / "reference", None, "", rng)[0]
+        expected = (rows(reference), tensorboard_rows(reference))
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             for k, moment in enumerate(["random"] * args.trials + ["write"] * args.write_trials):
-                got, what = run_to_end(Path(tmp) / f"{sig.name}_{k}", sig, moment, rng)
-                ok = got == reference
-                failures += not ok
-                print(f"{sig.name:8s} {moment:6s} {what:50s} {'same rows' if ok else 'DIFFERENT ROWS'}", flush=True)
+                run, what = trial(Path(tmp) / f"{sig.name}_{k}", sig, moment, rng)
+                same = (rows(run), tensorboard_rows(run)) == expected
+                outcomes[sig.name, what.split("exit ")[1].split(",")[0], "write" in what, same] += 1
+                print(f"{sig.name:8s} {what:60s} {'same rows' if same else 'DIFFERENT ROWS'}", flush=True)
+        print(f"uninterrupted run: {len(expected[0])} epochs")
+        for (name, code, write, same), n in sorted(outcomes.items()):
+            print(f"{name:8s} exit {code:4s} {'during a write' if write else '              '} "
+                  f"{'same rows' if same else 'DIFFERENT ROWS'}: {n}")  # fmt: skip
         n = 3 * (args.trials + args.write_trials)
-        print(f"{n - failures} of {n} stopped runs resumed into the uninterrupted run ({len(reference)} epochs each)")
-    os._exit(1 if failures else 0)
+        good = sum(v for k, v in outcomes.items() if k[3])
+        print(f"{good} of {n} stopped runs resumed into the uninterrupted run")
+    sys.exit(0 if good == n else 1)
 
 
 if __name__ == "__main__":

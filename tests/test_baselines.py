@@ -167,6 +167,32 @@ def test_goals_are_drawn_in_proportion_to_softmax_of_disagreement_over_temperatu
     np.testing.assert_allclose(freq, expected, atol=0.02)
 
 
+def test_a_tiny_temperature_draws_the_most_disputed_goal_instead_of_failing(monkeypatch):
+    learner = vds_learner(vds_temperature=1e-300)  # scores / 1e-300 overflow: softmax must shift them first
+    for c in og.to_mask(og.evaluation_classes(3)["C1"]):
+        learner.graph.add_config(int(c))
+    nodes = np.asarray(learner.graph.masks)
+    scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
+    monkeypatch.setattr(learner, "disagreement", lambda cand: np.array([scores[int(c)] for c in cand]))
+    assert {learner.autotelic_goal() for _ in range(50)} == {int(nodes[2])}
+
+
+@pytest.mark.parametrize(
+    "script, argv, named",
+    [
+        ("lp_baseline.py", ["--lp-min-outcomes", "300", "--lp-window", "200"], "300"),
+        ("vds_baseline.py", ["--vds-temperature", "0"], "0"),
+        ("vds_baseline.py", ["--vds-temperature", "nan"], "nan"),
+    ],
+)
+def test_a_bad_sampler_value_exits_2_naming_it(script, argv, named, capsys):
+    module = lp if script.startswith("lp") else vds
+    with pytest.raises(SystemExit) as e:
+        module.parse_args(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and named in err and len(err.strip().splitlines()) == 1
+
+
 def test_at_most_1000_candidates_are_scored_all_from_the_agent_graph(monkeypatch):
     learner = vds_learner()
     learner.graph = vds.SemanticGraph(3, learner.args)

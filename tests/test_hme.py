@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.stats
 import torch
+from chisquare import uniform_pvalue
 
 import gangstr_hme as gh
 import oracle_graph as og
@@ -120,6 +120,18 @@ def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp
             assert drawn == {None}
         else:
             assert drawn <= allowed and len(drawn) >= min(2, len(allowed))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_frontier_goal_elsewhere_is_never_the_current_config(sp, seed):
+    # --strategy frontier: a goal the agent must move to (its own config would cost no segment).
+    g = random_agent_graph(sp, seed, p_edge=0.3)
+    rng = np.random.default_rng(seed)
+    stones = brute_force_stones(sp, g)
+    for start in g.masks[:: max(1, g.n_nodes // 6)]:
+        allowed = (stones & reachable(g, start)) - {start}
+        drawn = {sp.frontier_goal(g, start, rng, elsewhere=True) for _ in range(60)}
+        assert drawn == {None} if not allowed else drawn <= allowed
 
 
 @pytest.mark.parametrize("seed", range(8))
@@ -287,7 +299,7 @@ def test_a_pair_failed_again_and_again_is_stored_once_and_rehearsed_as_often_as_
     assert learner.internalization_buffer == [(C01, b) for b in C01_BEYOND[:3]]  # SPEC §7: a set
     counts = np.unique(rehearsed_goals(learner, monkeypatch, 300), return_counts=True)[1]
     assert len(counts) == 3 and counts.sum() == 1500  # 5 draws a cycle: frontier leg, beyond attempt
-    assert scipy.stats.chisquare(counts).pvalue > 1e-3  # uniform over pairs, not 10 : 1 : 3
+    assert uniform_pvalue(counts) > 1e-3  # uniform over pairs, not 10 : 1 : 3
 
 
 @pytest.mark.parametrize("rank", [0, 1])
@@ -316,7 +328,7 @@ def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypa
     # ones, then the new ones in rank order.
     assert learner.internalization_buffer == [a, b, c, d]
     counts = np.unique(rehearsed_goals(learner, monkeypatch, 200), return_counts=True)[1]
-    assert len(counts) == 4 and scipy.stats.chisquare(counts).pvalue > 1e-3
+    assert len(counts) == 4 and uniform_pvalue(counts) > 1e-3
 
 
 def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_goal(monkeypatch):

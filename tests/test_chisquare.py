@@ -1,0 +1,14 @@
+"""tests/chisquare.py, the chi-square p-value the uniformity tests use, against printed tables."""
+
+import pytest
+from chisquare import uniform_pvalue, upper_gamma_q
+
+
+@pytest.mark.parametrize("df, x, p", [(1, 3.841, 0.05), (10, 18.307, 0.05), (4, 13.277, 0.01), (2, 9.210, 0.01)])
+def test_the_chi_square_tail_matches_the_printed_critical_values(df, x, p):
+    assert upper_gamma_q(df / 2, x / 2) == pytest.approx(p, abs=2e-5)
+
+
+def test_equal_counts_are_uniform_and_lopsided_ones_are_not():
+    assert uniform_pvalue([50, 50, 50, 50]) == pytest.approx(1.0)
+    assert uniform_pvalue([100, 10, 10, 10]) < 1e-6
