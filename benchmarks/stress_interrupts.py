@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 from test_gangstr import STOPPED, TIMING, tensorboard_rows  # noqa: E402
 
 EPOCHS, CYCLES = 6, 3  # STOPPED's

@@ -108,30 +108,20 @@ def test_stepping_stones_match_a_brute_force_check(sp, seed):
     assert set(sp.stepping_stones(g).tolist()) == brute_force_stones(sp, g)
 
 
+@pytest.mark.parametrize("elsewhere", [False, True], ids=["current included", "elsewhere"])
 @pytest.mark.parametrize("seed", range(8))
-def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp, seed):
+def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp, seed, elsewhere):
+    # elsewhere (--strategy frontier): a goal the agent must move to, never its own config.
     g = random_agent_graph(sp, seed, p_edge=0.3)
     rng = np.random.default_rng(seed)
     stones = brute_force_stones(sp, g)
     for start in g.masks[:: max(1, g.n_nodes // 6)]:
-        allowed = stones & reachable(g, start)
-        drawn = {sp.frontier_goal(g, start, rng) for _ in range(60)}
+        allowed = (stones & reachable(g, start)) - ({start} if elsewhere else set())
+        drawn = {sp.frontier_goal(g, start, rng, elsewhere=elsewhere) for _ in range(60)}
         if not allowed:
             assert drawn == {None}
         else:
             assert drawn <= allowed and len(drawn) >= min(2, len(allowed))
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_a_frontier_goal_elsewhere_is_never_the_current_config(sp, seed):
-    # --strategy frontier: a goal the agent must move to (its own config would cost no segment).
-    g = random_agent_graph(sp, seed, p_edge=0.3)
-    rng = np.random.default_rng(seed)
-    stones = brute_force_stones(sp, g)
-    for start in g.masks[:: max(1, g.n_nodes // 6)]:
-        allowed = (stones & reachable(g, start)) - {start}
-        drawn = {sp.frontier_goal(g, start, rng, elsewhere=True) for _ in range(60)}
-        assert drawn == {None} if not allowed else drawn <= allowed
 
 
 @pytest.mark.parametrize("seed", range(8))
