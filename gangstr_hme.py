@@ -10,7 +10,8 @@ partner who sometimes proposes a goal at the agent's frontier and a goal just be
     python gangstr_hme.py --sp-ratio 0 --n-blocks 3       # pure autotelic GANGSTR, 3 blocks
 
 Read top to bottom: Args, networks (SPEC §5), normalizer and HER replay, SAC, the semantic graph with
-its path planners (SPEC §6), rollouts and cycles, evaluation (SPEC §9), outputs (SPEC §10), main loop.
+its path planners (SPEC §6), rollouts and cycles, evaluation (SPEC §9); then the plumbing a forker may
+skip: checkpoints and the paper's trained agent, outputs (SPEC §10), interruptions; the main loop last.
 """
 
 from __future__ import annotations
