@@ -16,10 +16,13 @@ from __future__ import annotations
 import argparse
 import ast
 import collections
+import collections.abc
+import concurrent.futures
 import contextlib
 import copy
 import csv
 import dataclasses
+import functools
 import gc
 import heapq
 import inspect
@@ -34,6 +37,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -107,6 +111,8 @@ class Args:
     """sub-goal segments an evaluation episode may use"""
     plan_on: str = "agent"
     """with --eval-only: plan sub-goals on the 'agent' graph (SPEC §9) or the 'oracle' graph (its shortest paths)"""
+    num_envs: int = 1
+    """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0
     """torch CPU threads (0: all cores)"""
     cuda: bool = False
@@ -189,7 +195,7 @@ def check_args(a: Args) -> str | None:
             return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
     at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
                   "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals",
-                  "init_prior_count")  # fmt: skip
+                  "init_prior_count", "num_envs")  # fmt: skip
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
@@ -219,9 +225,10 @@ def check_args(a: Args) -> str | None:
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
     n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
-    replay_bytes = a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)
+    replay_bytes = a.num_envs * a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)  # each worker's
     if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
-        return f"--buffer-size {a.buffer_size} needs {replay_bytes / 2**30:.1f} GiB, more memory than this machine has"
+        return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "
+                "memory than this machine has")  # fmt: skip
     if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
@@ -306,6 +313,16 @@ def all_sum(x: np.ndarray) -> np.ndarray:
     t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
     dist.all_reduce(t)
     return t.cpu().numpy()
+
+
+def gather_workers(local: np.ndarray) -> np.ndarray:
+    """(all workers, ...) float64 rows from this process's (num_envs, ...) rows, in global worker order: a
+    sum of zero-padded copies, which adds nothing but zeros to any value."""
+    if world() == 1:
+        return np.asarray(local, dtype=np.float64)
+    full = np.zeros((world() * len(local), *np.shape(local)[1:]))
+    full[rank() * len(local) : (rank() + 1) * len(local)] = local
+    return all_sum(full)
 
 
 def all_gather_rows(rows: np.ndarray) -> np.ndarray:
@@ -455,10 +472,10 @@ class Actor(nn.Module):
         mean, log_std = self.head(self.node(node_inputs([body], [blocks, msg])).sum(1)).chunk(2, dim=-1)
         return mean, log_std.clamp(-20, 2)
 
-    def sample(self, body, blocks, msg):
-        """Squashed Gaussian action and its log-probability (with the tanh correction)."""
+    def sample(self, body, blocks, msg, noise):
+        """Squashed Gaussian action and its log-probability (with the tanh correction), for the standard
+        normal draws `noise` (B, 4): drawn by the caller, from each worker's own random stream."""
         mean, log_std = self(body, blocks, msg)
-        noise = torch.randn_like(mean)
         u = mean + log_std.exp() * noise  # reparameterised Gaussian sample
         a = torch.tanh(u)
         gauss_log_prob = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
@@ -477,8 +494,11 @@ class Normalizer:
         self.mean, self.std = np.zeros(size), np.ones(size)
 
     def update(self, x: np.ndarray):
-        x = np.clip(x.reshape(-1, len(self.sum)), -self.clip, self.clip)
-        stats = all_sum(np.concatenate([x.sum(0), (x * x).sum(0), [len(x)]]))  # every worker's segments
+        """Add x (workers, ..., size): this process's workers' new observations. The sums of every worker,
+        in global worker order (SPEC §11): the same statistics however the workers share processes."""
+        x = np.clip(x.reshape(len(x), -1, len(self.sum)), -self.clip, self.clip).astype(np.float64)
+        per_worker = np.concatenate([x.sum(1), (x * x).sum(1), np.full((len(x), 1), x.shape[1])], axis=1)
+        stats = gather_workers(per_worker).sum(0)
         self.add(stats[: len(self.sum)], stats[len(self.sum) : -1], int(stats[-1]))
 
     def add(self, s, ss, count):
@@ -503,44 +523,55 @@ class Normalizer:
 
 
 class ReplayBuffer:
-    """Episode-major FIFO storage of segments; goals stored as int8 (+-1)."""
+    """Each worker's own FIFO replay of segments (SPEC §5, §11), for all the workers of this process in
+    one array: axis 0 is the worker, axis 1 its segments; goals stored as int8 (+-1). Every worker
+    stores a cycle's segments at once, so all fill alike."""
 
-    def __init__(self, n_segments: int, seg_len: int, obs_dim: int, goal_dim: int):
-        self.obs = np.zeros((n_segments, seg_len + 1, obs_dim), np.float32)
-        self.ag = np.zeros((n_segments, seg_len + 1, goal_dim), np.int8)
-        self.g = np.zeros((n_segments, goal_dim), np.int8)
-        self.actions = np.zeros((n_segments, seg_len, 4), np.float32)
+    def __init__(self, n_workers: int, n_segments: int, seg_len: int, obs_dim: int, goal_dim: int):
+        self.obs = np.zeros((n_workers, n_segments, seg_len + 1, obs_dim), np.float32)
+        self.ag = np.zeros((n_workers, n_segments, seg_len + 1, goal_dim), np.int8)
+        self.g = np.zeros((n_workers, n_segments, goal_dim), np.int8)
+        self.actions = np.zeros((n_workers, n_segments, seg_len, 4), np.float32)
         self.ptr, self.size = 0, 0
 
     def store(self, obs, ag, g, actions):
-        """Add a batch of segments: obs (S, T+1, .), ag (S, T+1, .), g (S, .), actions (S, T, 4)."""
-        idx = (self.ptr + np.arange(len(obs))) % len(self.obs)
-        self.obs[idx], self.ag[idx], self.g[idx], self.actions[idx] = obs, ag, g, actions
-        self.ptr = int((self.ptr + len(obs)) % len(self.obs))
-        self.size = min(self.size + len(obs), len(self.obs))
+        """Add each worker's segments: obs (W, S, T+1, .), ag (W, S, T+1, .), g (W, S, .), actions (W, S, T, 4)."""
+        capacity = self.obs.shape[1]
+        idx = (self.ptr + np.arange(obs.shape[1])) % capacity
+        self.obs[:, idx], self.ag[:, idx], self.g[:, idx], self.actions[:, idx] = obs, ag, g, actions
+        self.ptr = int((self.ptr + obs.shape[1]) % capacity)
+        self.size = min(self.size + obs.shape[1], capacity)
 
-    def sample(self, batch: int, rng: np.random.Generator, her_prob: float, strategy: str):
-        """Uniform segments and steps; the goal relabelled with probability her_prob; reward recomputed."""
-        seg_len = self.actions.shape[1]
-        ep = rng.integers(self.size, size=batch)
-        t = rng.integers(seg_len, size=batch)
-        g = self.g[ep].copy()
-        her = rng.random(batch) < her_prob
-        if strategy == "final":
-            future = np.full(batch, seg_len)
-        else:  # a later achieved config of the same segment, in [t + 1, T]
-            future = t + 1 + (rng.random(batch) * (seg_len - t)).astype(np.int64)
-        g[her] = self.ag[ep[her], future[her]]
-        ag_next = self.ag[ep, t + 1]
-        reward = (ag_next == g).all(1).astype(np.float32)
+    def sample(self, batch: int, rngs: list[np.random.Generator], her_prob: float, strategy: str) -> dict:
+        """`batch` transitions from each worker's replay (uniform segments and steps), drawn with that
+        worker's random stream as if it were alone in its process, concatenated in worker order. A goal
+        is relabelled with probability her_prob, the reward recomputed. With them, the standard normal
+        draws of the update's two policy samples (SPEC §5), from the same streams: an update depends on
+        its batch alone, however the workers share processes."""
+        seg_len = self.actions.shape[2]
+        draws = []
+        for rng in rngs:  # a handful of draws per worker; the gathers below are one for all workers
+            ep, t, her = rng.integers(self.size, size=batch), rng.integers(seg_len, size=batch), rng.random(batch)
+            if strategy == "final":
+                future = np.full(batch, seg_len)
+            else:  # a later achieved config of the same segment, in [t + 1, T]
+                future = t + 1 + (rng.random(batch) * (seg_len - t)).astype(np.int64)
+            draws.append((ep, t, her < her_prob, future, rng.standard_normal((batch, 8), dtype=np.float32)))
+        ep, t, her, future, noise = (np.concatenate(x) for x in zip(*draws, strict=True))
+        w = np.repeat(np.arange(len(rngs)), batch)
+        g = self.g[w, ep]
+        g[her] = self.ag[w[her], ep[her], future[her]]
+        ag_next = self.ag[w, ep, t + 1]
         return dict(
-            obs=self.obs[ep, t],
-            obs_next=self.obs[ep, t + 1],
-            ag=self.ag[ep, t].astype(np.float32),
+            obs=self.obs[w, ep, t],
+            obs_next=self.obs[w, ep, t + 1],
+            ag=self.ag[w, ep, t].astype(np.float32),
             ag_next=ag_next.astype(np.float32),
             g=g.astype(np.float32),
-            action=self.actions[ep, t],
-            reward=reward,
+            action=self.actions[w, ep, t],
+            reward=(ag_next == g).all(1).astype(np.float32),
+            noise_next=noise[:, :4],  # for the next action in the critic's target
+            noise_pi=noise[:, 4:],  # for the action the actor loss scores
         )
 
 
@@ -563,39 +594,42 @@ class SAC:
         self.n_updates = 0
 
     @torch.inference_mode()
-    def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, deterministic: bool) -> np.ndarray:
-        o = torch.from_numpy(self.normalizer(obs)[None]).to(self.device)  # from_numpy: cheaper than as_tensor
+    def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
+        """Actions (K, 4) of K workers in one forward pass: obs (K, .), ag and g (K, .). `noise` (K, 4)
+        holds each worker's standard normal draws, zeros for the deterministic policy (its mean: the
+        sample is mean + std x noise); None: deterministic for all."""
+        o = torch.from_numpy(self.normalizer(obs)).to(self.device)  # from_numpy: cheaper than as_tensor
         body, blocks = split_obs(o, self.gi.n)
-        msg = self.acting_critic.messages(self.gi, blocks, torch.from_numpy((g - ag)[None]).to(self.device))
+        msg = self.acting_critic.messages(self.gi, blocks, torch.from_numpy(g - ag).to(self.device))
         mean, log_std = self.acting_actor(body, blocks, msg)
-        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # no log-prob needed
-        return torch.tanh(u).cpu().numpy()[0]
+        u = mean if noise is None else mean + log_std.exp() * torch.from_numpy(noise).to(self.device)
+        return torch.tanh(u).cpu().numpy()
 
     def losses(self, batch: dict):
-        """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors."""
-        a, gi = self.args, self.gi
+        """Critic and actor losses of SPEC §5 on a batch of (normalized) tensors holding each of this
+        process's workers' samples: each loss is the sum over workers of their mean losses, whose
+        gradient is the sum of the workers' gradients (SPEC §11)."""
+        a, gi, workers = self.args, self.gi, self.args.num_envs
         body, blocks = split_obs(batch["obs"], gi.n)
         body2, blocks2 = split_obs(batch["obs_next"], gi.n)
         with torch.no_grad():
             gap2 = batch["g"] - batch["ag_next"]
             msg2 = self.critic.messages(gi, blocks2, gap2)
-            a2, logp2 = self.actor.sample(body2, blocks2, msg2)
+            a2, logp2 = self.actor.sample(body2, blocks2, msg2, batch["noise_next"])
             tmsg2 = self.critic_target.messages(gi, blocks2, gap2)
             q_next = torch.min(*self.critic_target.q(body2, blocks2, a2, tmsg2))
             target = batch["reward"] + a.gamma * (q_next - a.alpha * logp2)  # no terminal masking
             self.last_target = target
         msg = self.critic.messages(gi, blocks, batch["g"] - batch["ag"])
         q1, q2 = self.critic.q(body, blocks, batch["action"], msg)
-        critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
+        critic_loss = workers * (F.mse_loss(q1, target) + F.mse_loss(q2, target))
         # The actor reads detached messages: the message net learns from the critic loss only.
-        pi, logp = self.actor.sample(body, blocks, msg.detach())
+        pi, logp = self.actor.sample(body, blocks, msg.detach(), batch["noise_pi"])
         q_pi = torch.min(*self.critic.q(body, blocks, pi, msg.detach()))
-        actor_loss = (a.alpha * logp - q_pi).mean()
-        return (
-            critic_loss,
-            actor_loss,
-            dict(q=q1.mean().item(), target=target.mean().item(), entropy=-logp.mean().item()),
-        )
+        actor_loss = workers * (a.alpha * logp - q_pi).mean()
+        info = dict(critic_loss=critic_loss.item() / workers, actor_loss=actor_loss.item() / workers,
+                    q=q1.mean().item(), target=target.mean().item(), entropy=-logp.mean().item())  # fmt: skip
+        return critic_loss, actor_loss, info
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
@@ -614,7 +648,7 @@ class SAC:
         self.n_updates += 1
         if self.n_updates % self.args.target_update_every == 0:
             self.soft_update()
-        return dict(critic_loss=critic_loss.item(), actor_loss=actor_loss.item(), **info)
+        return info
 
     @torch.no_grad()
     def soft_update(self):
@@ -944,7 +978,7 @@ class LearningProgress:
 
 
 # ------------------------------------------------------------------------------------------------
-# Rollouts: segments, paths and cycles (SPEC §5, §6)
+# Workers and rollouts: segments, paths and cycle programs (SPEC §5, §6, §11)
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class Segment:
@@ -964,127 +998,210 @@ class Segment:
         return int(og.to_mask(self.ag[-1]))
 
 
-def run_segment(env, agent: SAC, goal: np.ndarray, args: Args, deterministic: bool, frames=None) -> Segment:
-    """One segment toward `goal` from wherever the blocks are now (no reset: sub-goals chain).
-    `frames`, a list, receives a rendered image per step (videos)."""
-    obs = env.set_goal(goal)
-    T = args.segment_len
-    o = np.empty((T + 1, env.obs_dim), np.float32)
-    ag = np.empty((T + 1, env.goal_dim), np.float32)
-    actions = np.empty((T, 4), np.float32)
-    o[0], ag[0] = obs["observation"], obs["achieved_goal"]
-    for t in range(T):
-        actions[t] = agent.act(o[t], ag[t], goal, deterministic)
-        obs, *_ = env.step(actions[t])
-        o[t + 1], ag[t + 1] = obs["observation"], obs["achieved_goal"]
-        if frames is not None:
-            frames.append(env.render())
-    success = bool((ag[-1] == goal).all())
-    stable = bool((ag[T - args.stable_steps :] == ag[-1]).all())
-    return Segment(o, ag, goal.copy(), actions, success, stable)
+class Request(NamedTuple):
+    """What a worker's program asks for next: one segment toward the config `goal` (a mask), from
+    wherever its blocks are (no reset: sub-goals chain). `frames`, a list, gets an image per step."""
+
+    goal: int
+    deterministic: bool
+    frames: list | None = None
 
 
-def follow_path(env, agent: SAC, path: list[int], budget: int, args: Args, deterministic: bool, frames=None):
-    """One segment per sub-goal of path[1:], moving on only while the sub-goal was reached exactly.
-    Returns the segments and whether the path's last config was reached."""
-    segments = []
-    for sub in path[1 : 1 + budget]:
-        segments.append(run_segment(env, agent, og.from_mask(sub, args.n_blocks), args, deterministic, frames))
-        if not segments[-1].success:
-            break
-    return segments, len(segments) == len(path) - 1 and segments[-1].success
+class Worker:
+    """One of SPEC §11's workers: its own env, seed (seed + global worker index) and random stream, and
+    the segments it may still run this cycle. A process holds --num-envs of them; under torchrun, process
+    r holds workers r x num_envs ... r x num_envs + num_envs - 1. What the paper's workers share after
+    each sync (networks, normalizer, semantic graph, internalized pairs) belongs to the Learner."""
+
+    def __init__(self, args: Args, index: int):
+        self.index, seed = index, args.seed + index
+        render_mode = "rgb_array" if args.capture_video else None
+        self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks, render_mode=render_mode)
+        self.env.reset(seed=seed)
+        self.rng = np.random.default_rng(seed)
+        self.left, self.segments = 0, []  # segments it may still run this cycle; those it ran
+
+
+def follow_path(w: Worker, path: list[int], deterministic: bool, frames: list | None = None):
+    """Program step: one segment per sub-goal of path[1:], moving on only while each is reached exactly
+    and the worker has segments left. Returns whether the path's last config was reached."""
+    for sub in path[1:]:
+        if w.left <= 0:
+            return False
+        segment = yield Request(sub, deterministic, frames)
+        if not segment.success:
+            return False
+    return True
 
 
 def current_config(env) -> int:
     return int(og.to_mask(env.set_goal(env.goal)["achieved_goal"]))
 
 
+@functools.cache
+def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
+
+
 class Learner:
-    """Everything a run carries: env, agent, semantic graph, replay, RNG and counters."""
+    """Everything a run carries: the workers, agent, semantic graph, replay, counters; and the driver
+    that runs the workers' programs (cycles, evaluation) in lockstep."""
 
     def __init__(self, args: Args, device):
-        self.args, seed = args, args.seed + rank()  # each worker its own seed (SPEC §11)
-        render_mode = "rgb_array" if args.capture_video else None
-        self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks, render_mode=render_mode)
-        self.env.reset(seed=seed)
-        self.agent = SAC(args, self.env.obs_dim, device)
+        self.args = args
+        self.workers = [Worker(args, rank() * args.num_envs + i) for i in range(args.num_envs)]
+        self.n_workers = world() * args.num_envs  # every process's
+        env = self.workers[0].env
+        self.agent = SAC(args, env.obs_dim, device)
         self.graph = SemanticGraph(args.n_blocks, args)
         seg_capacity = max(1, args.buffer_size // args.segment_len)
-        self.buffer = ReplayBuffer(seg_capacity, args.segment_len, self.env.obs_dim, self.env.goal_dim)
-        self.rng = np.random.default_rng(seed)
+        self.buffer = ReplayBuffer(args.num_envs, seg_capacity, args.segment_len, env.obs_dim, env.goal_dim)
         self.classes = og.evaluation_classes(args.n_blocks)
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
         self.plan_seconds = 0.0  # planning + graph updates, for the speed report
-        self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler
+        self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler (all local workers)
         self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
         self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
+        cores = len(os.sched_getaffinity(0)) // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+        self.physics_threads = max(1, min(args.num_envs, cores))
         self.init_goal_sampler()
 
-    # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
-    def pursue(self, goal: int, budget: int, explore: bool, deterministic: bool):
-        """Plan from the current config to goal on the semantic graph and follow the path."""
-        t = time.perf_counter()
-        path = self.graph.plan(current_config(self.env), goal, self.rng, explore)
-        self.plan_seconds += time.perf_counter() - t
-        return follow_path(self.env, self.agent, path, budget, self.args, deterministic)
+    # --- the driver: every worker's program in lockstep (SPEC §11) --------------------------------
+    def drive(self, programs: dict[Worker, collections.abc.Generator]):
+        """Run one program per worker (a generator of Requests that receives each finished Segment) until
+        all are done. Each round, every worker with a request gets its segment, all stepped together;
+        each segment goes to its worker's list."""
+        requests = {}
 
-    def autotelic_cycle(self, budget: int) -> list[Segment]:
-        """Long-term goals until `budget` segments are spent; reset the env after each (SPEC §6)."""
-        segments = []
-        while len(segments) < budget:
-            self.env.reset()
-            goal = self.autotelic_goal()
-            segs, reached = self.pursue(goal, budget - len(segments), True, False)
-            segments += segs
-            self.goal_outcome(goal, reached)
-        return segments
+        def advance(w, segment):
+            try:
+                requests[w] = programs[w].send(segment)
+            except StopIteration:
+                requests.pop(w, None)
+
+        for w in programs:
+            advance(w, None)
+        while requests:
+            workers = list(requests)
+            for w, segment in zip(workers, self.run_segments(workers, [requests[w] for w in workers]), strict=True):
+                w.segments.append(segment)
+                w.left -= 1
+                advance(w, segment)
+
+    def run_segments(self, workers: list[Worker], requests: list[Request]) -> list[Segment]:
+        """One segment per worker, in lockstep: at each of the T steps, one forward pass acts for all of
+        them, then their envs step in parallel threads (MuJoCo releases the GIL while it simulates).
+        Exploration noise comes from each worker's own random stream."""
+        a, T, K, env = self.args, self.args.segment_len, len(workers), workers[0].env
+        goals = og.from_mask(np.array([r.goal for r in requests], dtype=np.int64), a.n_blocks)
+        o = np.empty((K, T + 1, env.obs_dim), np.float32)
+        ag = np.empty((K, T + 1, env.goal_dim), np.float32)
+        actions = np.empty((K, T, 4), np.float32)
+        noise = np.zeros((K, T, 4), np.float32)
+        for k, (w, r) in enumerate(zip(workers, requests, strict=True)):
+            first = w.env.set_goal(goals[k])
+            o[k, 0], ag[k, 0] = first["observation"], first["achieved_goal"]
+            if not r.deterministic:
+                noise[k] = w.rng.standard_normal((T, 4), dtype=np.float32)
+        filming = [(w.env, r.frames) for w, r in zip(workers, requests, strict=True) if r.frames is not None]
+        for t in range(T):
+            actions[:, t] = self.agent.act(o[:, t], ag[:, t], goals, noise[:, t])
+            self.step([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1])
+            for film_env, frames in filming:  # in this thread: a GL context belongs to the thread that made it
+                frames.append(film_env.render())
+        success = (ag[:, -1] == goals).all(1)
+        stable = (ag[:, T - a.stable_steps :] == ag[:, -1:]).all((1, 2))
+        return [Segment(o[k], ag[k], goals[k], actions[k], bool(success[k]), bool(stable[k])) for k in range(K)]
+
+    def step(self, envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray):
+        """Every env one step; observations written to obs_out and ag_out (K, .)."""
+
+        def step_some(ks):
+            for k in ks:
+                obs = envs[k].step(actions[k])[0]
+                obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
+
+        n = min(len(envs), self.physics_threads)
+        if n == 1:
+            step_some(range(len(envs)))
+        else:
+            list(physics_pool(n).map(step_some, [range(i, len(envs), n) for i in range(n)]))
+
+    def run_cycle(self) -> list[Segment]:
+        """One cycle of every worker (its goal sampler's program, see cycle_program), in lockstep; then what the
+        sampler's workers share is merged. The segments, worker after worker."""
+        for w in self.workers:
+            w.left, w.segments = self.args.n_segments, []
+        self.drive({w: self.cycle_program(w) for w in self.workers})
+        self.after_cycle()
+        return [s for w in self.workers for s in w.segments]
+
+    # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
+    def pursue(self, w: Worker, goal: int, explore: bool, deterministic: bool):
+        """Program step: plan from the current config to goal on the semantic graph and follow the
+        path. Returns whether goal was reached."""
+        t = time.perf_counter()
+        path = self.graph.plan(current_config(w.env), goal, w.rng, explore)
+        self.plan_seconds += time.perf_counter() - t
+        return (yield from follow_path(w, path, deterministic))
+
+    def autotelic_goals(self, w: Worker):
+        """Program: long-term goals until the cycle's segments are spent; reset the env before each (SPEC §6)."""
+        while w.left > 0:
+            w.env.reset()
+            goal = self.autotelic_goal(w)
+            reached = yield from self.pursue(w, goal, explore=True, deterministic=False)
+            self.goal_outcome(w, goal, reached)
 
     # --- the goal sampler: learning progress (SPEC §8) ----------------------------------------------
     def init_goal_sampler(self):
         a = self.args
         self.lp = LearningProgress(len(self.classes), a.lp_window, a.lp_min_outcomes, a.lp_uniform_prob)
         self.class_masks = [og.to_mask(members) for members in self.classes.values()]
-        self.drawn_from = None
-        self.attempts: list[tuple[int, bool]] = []  # this cycle's (bucket, reached), not yet recorded
+        for w in self.workers:  # the bucket of its current goal; this cycle's (bucket, reached), not yet recorded
+            w.drawn_from, w.attempts = None, []
 
-    def run_cycle(self) -> list[Segment]:
+    def cycle_program(self, w: Worker):
         """Every cycle is autotelic; the learning-progress sampler picks the goals."""
         self.stats["cycles"] += 1
-        segments = self.autotelic_cycle(self.args.n_segments)
-        # Every worker's outcomes, in rank order: all workers see the same learning progress (SPEC §11).
-        for bucket, reached in all_gather_rows(np.array(self.attempts, dtype=np.int64).reshape(-1, 2)).tolist():
+        yield from self.autotelic_goals(w)
+
+    def after_cycle(self):
+        """Every worker's outcomes, in worker order: all workers see the same learning progress (SPEC §11)."""
+        mine = np.array([x for w in self.workers for x in w.attempts], dtype=np.int64).reshape(-1, 2)
+        for bucket, reached in all_gather_rows(mine).tolist():
             self.lp.record(bucket, bool(reached))
-        self.attempts.clear()
-        return segments
+        for w in self.workers:
+            w.attempts = []
 
     def buckets(self) -> list[np.ndarray]:
         """Per evaluation class, the configs of that class that are agent nodes (discovered)."""
         nodes = np.asarray(self.graph.masks, dtype=np.int64)
         return [m[np.isin(m, nodes)] for m in self.class_masks]
 
-    def autotelic_goal(self) -> int:
+    def autotelic_goal(self, w: Worker) -> int:
         """A bucket drawn by learning progress, then a goal uniformly in it; while no bucket holds a
         config, uniform over the agent's nodes (before any node exists: a random +-1 vector)."""
         buckets = self.buckets()
         nonempty = np.array([len(b) > 0 for b in buckets])
-        self.drawn_from = None  # the bucket of this goal, if it came from one
+        w.drawn_from = None  # the bucket of this goal, if it came from one
         if not nonempty.any():
-            node = self.graph.sample_node(self.rng)
+            node = self.graph.sample_node(w.rng)
             if node is None:
-                return int(og.to_mask(self.rng.choice([-1.0, 1.0], size=self.env.goal_dim)))
+                return int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
             return node
-        self.drawn_from = self.rng.choice(len(buckets), p=self.lp.probabilities(nonempty))
-        bucket = buckets[self.drawn_from]
-        return int(bucket[self.rng.integers(len(bucket))])
+        w.drawn_from = w.rng.choice(len(buckets), p=self.lp.probabilities(nonempty))
+        bucket = buckets[w.drawn_from]
+        return int(bucket[w.rng.integers(len(bucket))])
 
-    def goal_outcome(self, goal: int, reached: bool):
+    def goal_outcome(self, w: Worker, goal: int, reached: bool):
         """Credit the outcome to the bucket the goal was drawn from (SPEC §8: attempted goals)."""
         self.goals += 1
         self.stats["autotelic_goals"] += 1
         self.stats["autotelic_reached"] += reached
-        if self.drawn_from is not None:
-            self.attempts.append((self.drawn_from, reached))
+        if w.drawn_from is not None:
+            w.attempts.append((w.drawn_from, reached))
 
     def sampler_stats(self) -> dict:
         """Per-epoch LP numbers per bucket: learning progress, competence, probability, size."""
@@ -1118,12 +1235,13 @@ class Learner:
         return dict(zip(keys, all_sum(np.array([self.stats[k] for k in keys], dtype=np.float64)), strict=True))
 
     def learn_from(self, segments: list[Segment]):
-        """Store the cycle's segments, update the normalizer and the semantic graph. With several
-        workers, the normalizer and the graph learn from every worker's segments, in rank order, so
-        that the graphs stay identical (SPEC §11)."""
-        ag = np.stack([s.ag for s in segments])
-        obs = np.stack([s.obs for s in segments])
-        self.buffer.store(obs, ag, np.stack([s.g for s in segments]), np.stack([s.actions for s in segments]))
+        """Store each worker's segments in its replay (`segments`: worker after worker, as many each),
+        update the normalizer and the semantic graph. The normalizer and the graph learn from every
+        worker's segments, in global worker order, so that they are the same in every process and
+        whatever the split of workers into processes (SPEC §11)."""
+        per_worker = lambda x: np.stack(x).reshape(len(self.workers), -1, *np.shape(x[0]))  # noqa: E731
+        ag, obs = per_worker([s.ag for s in segments]), per_worker([s.obs for s in segments])
+        self.buffer.store(obs, ag, per_worker([s.g for s in segments]), per_worker([s.actions for s in segments]))
         self.agent.normalizer.update(obs)
         t = time.perf_counter()
         outcomes = all_gather_rows([(s.start, s.final, og.to_mask(s.g), s.success, s.stable) for s in segments])
@@ -1135,34 +1253,45 @@ class Learner:
         self.segments += len(outcomes)
 
     def train(self) -> dict:
-        """The cycle's SAC updates; returns the mean of each loss and statistic over them."""
+        """The cycle's SAC updates, each on a batch from every worker's replay; returns the mean of each
+        loss and statistic over them."""
         a, infos = self.args, []
         her_prob = 1 - 1 / (1 + a.her_k)
+        rngs = [w.rng for w in self.workers]
         for _ in range(a.n_updates if self.buffer.size else 0):
-            info = self.agent.update(self.buffer.sample(a.batch_size, self.rng, her_prob, a.her_strategy))
+            info = self.agent.update(self.buffer.sample(a.batch_size, rngs, her_prob, a.her_strategy))
             infos.append(info)
         return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
     # --- evaluation (SPEC §9) -------------------------------------------------------------------
     def evaluate(self, video: dict | None = None, graph: SemanticGraph | None = None) -> dict[str, float]:
-        """Per class, goals drawn uniformly; reset, plan the safest path, follow it deterministically
-        with at most max_eval_subgoals segments; success = the last segment ends exactly on the goal.
-        Test segments are neither stored nor used to update the graph. Workers split the goals of each
-        class (SPEC §9). `video`, if given, receives the frames of each class's first video_episodes;
+        """SR per class: every worker runs its share of the goals (see evaluation), all in lockstep.
+        `video`, if given, receives the frames of each class's first video_episodes (worker 0's);
         `graph`, if given, plans instead of the agent's (the oracle's, for --plan-on oracle)."""
-        a, wins, graph = self.args, np.zeros(len(self.classes)), graph or self.graph
-        share = len(range(rank(), a.eval_goals_per_class, world()))  # this worker's goals per class
-        for k, (name, members) in enumerate(self.classes.items()):
-            for i, goal in enumerate(members[self.rng.integers(len(members), size=share)]):
-                self.env.reset()
-                frames = video.setdefault(name, []) if video is not None and i < a.video_episodes else None
-                path = graph.plan(current_config(self.env), int(og.to_mask(goal)), self.rng, explore=False)
-                path = [path[0]] + path[1:][-a.max_eval_subgoals :]
-                wins[k] += follow_path(self.env, self.agent, path, len(path) - 1, a, True, frames)[1]
-        rates = all_sum(wins) / max(1, a.eval_goals_per_class)
+        wins = np.zeros((len(self.workers), len(self.classes)))
+        for w in self.workers:
+            w.left, w.segments = math.inf, []
+        self.drive({w: self.evaluation(w, graph or self.graph, wins[i], video) for i, w in enumerate(self.workers)})
+        for w in self.workers:
+            w.segments = []  # test segments are neither stored nor used to update the graph
+        rates = all_sum(wins.sum(0)) / max(1, self.args.eval_goals_per_class)
         sr = dict(zip(self.classes, rates.tolist(), strict=True))
         sr["global"] = float(np.mean(rates))
         return sr
+
+    def evaluation(self, w: Worker, graph: SemanticGraph, wins: np.ndarray, video: dict | None):
+        """Program: per class, goals drawn uniformly, goal i of the class to worker i mod workers (SPEC §9);
+        reset, plan the safest path, follow it deterministically with at most max_eval_subgoals segments;
+        success = the last segment ends exactly on the goal. Adds the successes per class to `wins`."""
+        a = self.args
+        for k, (name, members) in enumerate(self.classes.items()):
+            share = len(range(w.index, a.eval_goals_per_class, self.n_workers))
+            for i, goal in enumerate(members[w.rng.integers(len(members), size=share)]):
+                w.env.reset()
+                filmed = video is not None and w.index == 0 and i < a.video_episodes
+                path = graph.plan(current_config(w.env), int(og.to_mask(goal)), w.rng, explore=False)
+                path = [path[0]] + path[1:][-a.max_eval_subgoals :]
+                wins[k] += yield from follow_path(w, path, True, video.setdefault(name, []) if filmed else None)
 
     def encounters(self) -> dict[str, int]:
         """Distinct configs of each class met so far."""
@@ -1192,23 +1321,24 @@ class Learner:
             graph=self.graph.state_dict(),
             encountered=torch.tensor(sorted(self.encountered), dtype=torch.int64),
             **self.sampler_state(),
-            rng=json.dumps(self.rng.bit_generator.state),
-            env_rng=json.dumps(self.env.np_random.bit_generator.state),
-            torch_rng=torch.get_rng_state(),
+            rng=[json.dumps(w.rng.bit_generator.state) for w in self.workers],  # each worker's, of this process
+            env_rng=[json.dumps(w.env.np_random.bit_generator.state) for w in self.workers],
         )
         if self.args.save_buffer:
             b, n = self.buffer, self.buffer.size
             state["buffer"] = dict(
-                obs=torch.from_numpy(b.obs[:n]),
-                ag=torch.from_numpy(b.ag[:n]),
-                g=torch.from_numpy(b.g[:n]),
-                actions=torch.from_numpy(b.actions[:n]),
+                obs=torch.from_numpy(b.obs[:, :n]),
+                ag=torch.from_numpy(b.ag[:, :n]),
+                g=torch.from_numpy(b.g[:, :n]),
+                actions=torch.from_numpy(b.actions[:, :n]),
                 ptr=b.ptr,
             )
         return state
 
     def load_state_dict(self, s: dict):
         ag = self.agent
+        if not isinstance(s.get("rng", []), list):
+            raise ValueError("written before --num-envs (one random stream per worker): retrain, or use that version")
         c = s["counters"]
         self.epoch, self.cycle, self.segments, self.goals, ag.n_updates = (
             c["epoch"],
@@ -1228,19 +1358,19 @@ class Learner:
         self.graph.load_state_dict(s["graph"])
         self.encountered = set(s["encountered"].tolist())
         self.load_sampler_state(s)
-        if rank() > 0:  # the checkpoint holds worker 0's random streams and replay: the others start anew
-            self.rng = np.random.default_rng([self.args.seed + rank(), self.epoch, self.cycle])
-            self.env.reset(seed=int(self.rng.integers(2**31)))
-            torch.manual_seed(self.args.seed + rank() + 1000 * self.epoch + self.cycle)
-            self.stats.clear()  # this epoch's counts so far are worker 0's own: the others start again
+        if rank() > 0:  # the checkpoint holds process 0's random streams and replays: the others start anew
+            for w in self.workers:
+                w.rng = np.random.default_rng([self.args.seed + w.index, self.epoch, self.cycle])
+                w.env.reset(seed=int(w.rng.integers(2**31)))
+            self.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
             self.tally.update(wins=0, tries=0)
             return
-        self.rng.bit_generator.state = json.loads(s["rng"])
-        self.env.np_random.bit_generator.state = json.loads(s["env_rng"])
-        torch.set_rng_state(s["torch_rng"])
+        for w, rng, env_rng in zip(self.workers, s.get("rng", []), s.get("env_rng", []), strict=False):
+            w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
+            w.env.np_random.bit_generator.state = json.loads(env_rng)
         if "buffer" in s:
-            b, n = self.buffer, len(s["buffer"]["obs"])
-            b.obs[:n], b.ag[:n], b.g[:n], b.actions[:n] = (
+            b, n = self.buffer, s["buffer"]["obs"].shape[1]
+            b.obs[:, :n], b.ag[:, :n], b.g[:, :n], b.actions[:, :n] = (
                 s["buffer"][k].numpy() for k in ("obs", "ag", "g", "actions")
             )
             b.size, b.ptr = n, s["buffer"]["ptr"]
@@ -1399,7 +1529,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name")  # fmt: skip
+                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs")  # fmt: skip
 
 
 def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
@@ -1543,7 +1673,8 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
         print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
               "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
         return 2
-    state.pop("buffer", None)  # evaluation needs no replay
+    for key in ("buffer", "rng", "env_rng"):  # evaluation needs no replay, and draws from its own seeds
+        state.pop(key, None)
     args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
     learner = Learner(args, device)
     paper = state.get("format") == "paper"
@@ -1551,8 +1682,9 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
         load_weights(learner.agent, state, args, args.checkpoint, "--checkpoint")
     else:
         restore(learner, state, args.checkpoint, "--checkpoint")
-    learner.rng = np.random.default_rng(args.seed + rank())  # the evaluation's own seed, not the run's
-    learner.env.reset(seed=args.seed + rank())
+    for w in learner.workers:  # the evaluation's own seeds, not the run's
+        w.rng = np.random.default_rng(args.seed + w.index)
+        w.env.reset(seed=args.seed + w.index)
     video = {} if args.capture_video and rank() == 0 else None
     t = time.perf_counter()
     sr = learner.evaluate(video, oracle_planner(args) if args.plan_on == "oracle" else None)
@@ -1582,7 +1714,7 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     for name, frames in (video or {}).items():
         path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
         path.parent.mkdir(exist_ok=True)
-        write_video(path, frames, fps=1 / learner.env.dt)
+        write_video(path, frames, fps=1 / learner.workers[0].env.dt)
         print(f"video {path} ({len(frames)} frames)")
     return 0
 
@@ -1747,7 +1879,8 @@ def start_run(args: Args, state: dict | None, device, init: dict | None = None) 
             except OSError as e:
                 print(f"error: --runs-dir {args.runs_dir!r}: cannot create {str(run_dir)!r}: {e}", file=sys.stderr)
                 return 2
-            (run_dir / "config.json").write_text(json.dumps(dict(dataclasses.asdict(args), workers=world()), indent=2))
+            config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
+            (run_dir / "config.json").write_text(json.dumps(config, indent=2))
     else:
         run_dir = Path(args.resume).resolve().parent
     learner = Learner(args, device)
@@ -1758,8 +1891,8 @@ def start_run(args: Args, state: dict | None, device, init: dict | None = None) 
         load_weights(learner.agent, init, args, args.init_from, "--init-from")
         progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
     logger = Logger(run_dir, learner.rows, resumed=state is not None) if rank() == 0 else None
-    progress(f"run folder {run_dir} | {args.n_blocks} blocks | LP goal sampler | {world()} worker(s) on "
-             f"{device}", final=True)  # fmt: skip
+    progress(f"run folder {run_dir} | {args.n_blocks} blocks | LP goal sampler | {learner.n_workers} "
+             f"worker(s) on {device}", final=True)  # fmt: skip
     try:
         return train(learner, logger, run_dir / "checkpoint.pt", Stopper(run_dir / "checkpoint.pt.tmp"))
     finally:

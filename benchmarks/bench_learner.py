@@ -107,9 +107,11 @@ def main():
     cfg = gh.Args(n_blocks=n, n_cycles=5, seed=0)
     learner = gh.Learner(cfg, torch.device("cpu"))
     # Fill the replay with real segments so that the batch is realistic.
-    learner.learn_from([gh.run_segment(learner.env, learner.agent, learner.env.goal, cfg, False) for _ in range(30)])
+    (w,) = learner.workers
+    goal = int(gh.og.to_mask(w.env.goal))
+    learner.learn_from([learner.run_segments([w], [gh.Request(goal, False)])[0] for _ in range(30)])
     rng = np.random.default_rng(0)
-    batch = learner.buffer.sample(256, rng, 0.8, "final")
+    batch = learner.buffer.sample(256, [rng], 0.8, "final")
     gnn_ms = median_ms(lambda: learner.agent.update(batch), args.repeats)
 
     t = learner.agent.to_tensors(batch)
@@ -118,8 +120,9 @@ def main():
     mlp = MLPSAC(flat.shape[1])
     mlp_ms = median_ms(lambda: mlp.update(flat, flat2, t["action"], t["reward"]), args.repeats)
 
-    obs = learner.env.reset(seed=1)[0]
-    act = lambda: learner.agent.act(obs["observation"], obs["achieved_goal"], obs["desired_goal"], False)  # noqa: E731
+    obs = {k: v[None] for k, v in w.env.reset(seed=1)[0].items()}
+    noise = np.zeros((1, 4), np.float32)
+    act = lambda: learner.agent.act(obs["observation"], obs["achieved_goal"], obs["desired_goal"], noise)  # noqa: E731
     act_blocks = [median_ms(act, 1000) for _ in range(5)]  # 5 blocks of 1,000 calls: shows the machine's drift
     act_ms = statistics.median(act_blocks)
 

@@ -1,12 +1,19 @@
-"""Throughput with 1 and 2 workers (SPEC §11): collected env steps per second of whole training cycles
-(collection, graph updates and SAC updates; no evaluation), medians over repeats.
+"""Throughput of several workers (SPEC §11): collected env steps per second of whole training cycles
+(collection, graph updates and SAC updates; no evaluation), medians over repeats; then the seconds of
+one cycle of the paper's 24-worker configuration in one process, and where they go.
 
-Each repeat is a fresh run of gangstr_hme.py for one epoch of --n-cycles cycles with the paper's
-settings otherwise (5 blocks, 10 segments and 30 updates of batch 256 per cycle and worker), read
-from its progress.csv. Conditions: one process with all cores for torch, one process with one
-thread, and `torchrun --nproc-per-node 2` with one thread per worker.
+Each repeat of the first part is a fresh run of gangstr_hme.py for one epoch of --n-cycles cycles with
+the paper's settings otherwise (5 blocks, 10 segments and 30 updates of batch 256 per cycle and
+worker), read from its progress.csv. Conditions, interleaved so that drifts in machine load hit each:
+one process with one worker, one process with two (--num-envs 2), and two processes of one worker
+(`torchrun --nproc-per-node 2 ... --threads 1`).
 
-    python benchmarks/bench_scaling.py [--n-cycles 10] [--repeats 3] [--n-blocks 5]
+The second part builds a 24-worker learner in this process (--num-envs 24) and times --cycles-24
+cycles after a first one (which fills the replays), split into acting (the batched forward passes),
+physics (the envs' steps), planning and graph updates, SAC updates (each over 24 x 256 samples), and
+the rest (the workers' programs, segment bookkeeping, replay stores, normalizer).
+
+    python benchmarks/bench_scaling.py [--n-cycles 10] [--repeats 3] [--n-blocks 5] [--cycles-24 2] [--cuda]
 """
 
 import argparse
@@ -15,16 +22,21 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
+import torch
+
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+import gangstr_hme as gh  # noqa: E402
 
 
-def steps_per_second(launcher: list[str], threads: int, args) -> float:
+def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
     with tempfile.TemporaryDirectory() as runs:
         cmd = [*launcher, "gangstr_hme.py", "--n-blocks", str(args.n_blocks), "--n-epochs", "1",
-               "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "1", "--threads", str(threads),
-               "--no-save-buffer", "--runs-dir", runs]  # fmt: skip
+               "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "1", "--no-save-buffer",
+               "--runs-dir", runs, *flags]  # fmt: skip
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True)
         (progress,) = Path(runs).glob("*/progress.csv")
         with progress.open() as f:
@@ -32,29 +44,80 @@ def steps_per_second(launcher: list[str], threads: int, args) -> float:
             return float(row["env_steps"]) / (float(row["time_collect"]) + float(row["time_update"]))
 
 
+def timed(seconds: dict, key: str, fn):
+    def wrapper(*a, **kw):
+        t = time.perf_counter()
+        try:
+            return fn(*a, **kw)
+        finally:
+            seconds[key] += time.perf_counter() - t
+
+    return wrapper
+
+
+def cycle_profile(args) -> tuple[float, dict]:
+    """Seconds per cycle of --num-envs 24 in this process, and their split."""
+    cfg = gh.Args(n_blocks=args.n_blocks, num_envs=24, sp_ratio=0.2, cuda=args.cuda, seed=0)
+    torch.manual_seed(0)
+    learner = gh.Learner(cfg, gh.init_workers(cfg))
+    seconds = dict.fromkeys(["acting", "physics", "SAC updates"], 0.0)
+    learner.agent.act = timed(seconds, "acting", learner.agent.act)
+    learner.step = timed(seconds, "physics", learner.step)
+    learner.train = timed(seconds, "SAC updates", learner.train)
+
+    def one_cycle():
+        learner.learn_from(learner.run_cycle())
+        learner.train()
+        if args.cuda:
+            torch.cuda.synchronize()
+
+    one_cycle()  # fills the replays; compiles nothing, but warms caches and allocators
+    for k in seconds:
+        seconds[k] = 0.0
+    learner.plan_seconds = 0.0
+    t = time.perf_counter()
+    for _ in range(args.cycles_24):
+        one_cycle()
+    total = (time.perf_counter() - t) / args.cycles_24
+    split = {k: v / args.cycles_24 for k, v in seconds.items()}
+    split["planning + graph"] = learner.plan_seconds / args.cycles_24
+    split["rest"] = total - sum(split.values())
+    return total, split
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n-cycles", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--n-blocks", type=int, default=5)
+    parser.add_argument("--cycles-24", type=int, default=2, help="timed cycles of the 24-worker learner")
+    parser.add_argument("--cuda", action="store_true", help="the 24-worker learner on the GPU")
+    parser.add_argument("--skip-scaling", action="store_true", help="only the 24-worker cycle")
     args = parser.parse_args()
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
     conditions = {
-        "1 process, all cores": ([sys.executable], 0),
-        "1 process, 1 thread": ([sys.executable], 1),
-        "2 workers (torchrun), 1 thread each": (torchrun, 1),
+        "1 process, 1 worker": ([sys.executable], ["--num-envs", "1"]),
+        "1 process, 2 workers (--num-envs 2)": ([sys.executable], ["--num-envs", "2"]),
+        "2 processes x 1 worker (torchrun)": (torchrun, ["--threads", "1"]),
     }
-    results = {}
-    for _ in range(args.repeats):  # interleaved, so that drifts in machine load hit every condition
-        for name, (launcher, threads) in conditions.items():
-            results.setdefault(name, []).append(steps_per_second(launcher, threads, args))
-    med = {name: statistics.median(v) for name, v in results.items()}
-    print(f"{args.n_blocks} blocks, {args.n_cycles} cycles per run, median of {args.repeats} runs")
-    for name, v in med.items():
-        print(f"  {name:38s} {v:7.0f} env steps/s   (runs: {', '.join(f'{x:.0f}' for x in results[name])})")
-    two = med["2 workers (torchrun), 1 thread each"]
-    print(f"  ratio 2 workers / 1 process, all cores: {two / med['1 process, all cores']:.2f}x")
-    print(f"  ratio 2 workers / 1 process, 1 thread:  {two / med['1 process, 1 thread']:.2f}x")
+    if not args.skip_scaling:
+        results = {}
+        for _ in range(args.repeats):
+            for name, (launcher, flags) in conditions.items():
+                results.setdefault(name, []).append(steps_per_second(launcher, flags, args))
+        med = {name: statistics.median(v) for name, v in results.items()}
+        print(f"{args.n_blocks} blocks, {args.n_cycles} cycles per run, median of {args.repeats} runs")
+        for name, v in med.items():
+            print(f"  {name:38s} {v:7.0f} env steps/s   (runs: {', '.join(f'{x:.0f}' for x in results[name])})")
+        lockstep, torchrun_2 = med["1 process, 2 workers (--num-envs 2)"], med["2 processes x 1 worker (torchrun)"]
+        print(f"  ratio --num-envs 2 / torchrun 2 x 1:   {lockstep / torchrun_2:.2f}x")
+        print(f"  ratio --num-envs 2 / 1 worker:         {lockstep / med['1 process, 1 worker']:.2f}x")
+    total, split = cycle_profile(args)
+    device = torch.cuda.get_device_name() if args.cuda else f"CPU, {torch.get_num_threads()} torch threads"
+    print(f"24 workers in one process ({device}): {total:.2f} s per cycle "
+          f"(mean of {args.cycles_24}; 24 x 10 segments x 40 steps, 30 updates of 24 x 256)")  # fmt: skip
+    for k, v in split.items():
+        print(f"  {k:18s} {v:7.2f} s  {100 * v / total:5.1f}%")
 
 
 if __name__ == "__main__":

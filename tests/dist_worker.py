@@ -1,10 +1,11 @@
-"""A torchrun worker for tests/test_distributed.py (not a test itself).
+"""Workers for tests/test_distributed.py (not a test itself): the same 2-worker run, two ways.
 
-    torchrun --standalone --nproc-per-node 2 tests/dist_worker.py OUT_DIR
+    torchrun --standalone --nproc-per-node 2 tests/dist_worker.py OUT_DIR      # 2 processes x 1 worker
+    python tests/dist_worker.py OUT_DIR --num-envs 2                          # 1 process x 2 workers
 
-Each worker makes one SAC update on its own fixed batch, then trains a few cycles, and saves what the
-test compares to OUT_DIR/rank{r}.pt; finally every worker runs gangstr_hme.main on a tiny run whose
-folder goes to OUT_DIR/runs."""
+Each process makes one SAC update on its workers' fixed batches (a separate copy of the networks),
+then trains a few cycles, and saves what the test compares to OUT_DIR/{mode}{rank}.pt; under
+torchrun, every worker then runs gangstr_hme.main on a tiny run whose folder goes to OUT_DIR/runs."""
 
 import sys
 from pathlib import Path
@@ -25,35 +26,47 @@ def fixed_batch(seed: int, n: int = 16) -> dict:
     pm = lambda: rng.choice([-1.0, 1.0], size=(n, 9)).astype(np.float32)  # noqa: E731
     return dict(obs=rng.normal(size=(n, 55)).astype(np.float32), obs_next=rng.normal(size=(n, 55)).astype(np.float32),
                 ag=pm(), ag_next=pm(), g=pm(), action=rng.uniform(-1, 1, (n, 4)).astype(np.float32),
-                reward=rng.integers(0, 2, n).astype(np.float32))  # fmt: skip
+                reward=rng.integers(0, 2, n).astype(np.float32), noise_next=rng.normal(size=(n, 4)).astype(np.float32),
+                noise_pi=rng.normal(size=(n, 4)).astype(np.float32))  # fmt: skip
 
 
-def main(out: Path):
-    args = gh.Args(**TINY)
+def main(out: Path, num_envs: int):
+    args = gh.Args(**TINY, num_envs=num_envs)
     torch.set_num_threads(1)
     device = gh.init_workers(args)
     r = gh.rank()
     torch.manual_seed(args.seed + r)
     learner = gh.Learner(args, device)  # parameters broadcast from worker 0 here
-    sac = learner.agent
-    initial = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in ("actor", "critic")}
-    batch = fixed_batch(100 + r)
-    torch.manual_seed(7 + r)  # the draws of this worker's update, for the test to replay
-    sac.update(batch)
-    after_one = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in ("actor", "critic")}
-    grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in ("actor", "critic")}
-    for _ in range(args.n_cycles):
+    nets = ("actor", "critic")
+    initial = {k: {n: t.clone() for n, t in getattr(learner.agent, k).state_dict().items()} for k in nets}
+    sac = gh.SAC(args, 55, device)  # the fixed-batch update, on a copy: the learner's cycles start from `initial`
+    for k in nets:
+        getattr(sac, k).load_state_dict(initial[k])
+    sac.critic_target.load_state_dict(initial["critic"])
+    mine = [fixed_batch(100 + w.index) for w in learner.workers]
+    sac.update({k: np.concatenate([b[k] for b in mine]) for k in mine[0]})
+    after_one = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in nets}
+    grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in nets}
+    first_cycle, first_normalizer = [], None
+    for cycle in range(args.n_cycles):
         learner.learn_from(learner.run_cycle())
+        if cycle == 0:  # each worker's segments: goal, start and final configs, success; the statistics
+            first_cycle = [[(gh.og.to_mask(s.g), s.start, s.final, s.success) for s in w.segments]
+                           for w in learner.workers]  # fmt: skip
+            norm = learner.agent.normalizer
+            first_normalizer = torch.tensor(np.concatenate([norm.sum, norm.sumsq, [norm.count]]))
         learner.train()
     params = torch.cat(
-        [p.detach().reshape(-1) for m in (sac.actor, sac.critic, sac.critic_target) for p in m.parameters()]
+        [p.detach().reshape(-1) for m in (learner.agent.actor, learner.agent.critic) for p in m.parameters()]
     )
-    norm = sac.normalizer
+    norm = learner.agent.normalizer
     saved = dict(
         initial=initial,
-        batch={k: torch.from_numpy(v) for k, v in batch.items()},
+        batches=[{k: torch.from_numpy(v) for k, v in b.items()} for b in mine],
         after_one=after_one,
         grads=grads,
+        first_cycle=torch.tensor(first_cycle, dtype=torch.int64),
+        first_normalizer=first_normalizer,
         params=params,
         graph=learner.graph.state_dict(),
         internalization=torch.tensor(learner.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
@@ -63,7 +76,9 @@ def main(out: Path):
         buffer_size=learner.buffer.size,
         world=gh.world(),
     )
-    torch.save(saved, out / f"rank{r}.pt")
+    torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
+    if num_envs > 1:
+        return 0
     argv = ["--n-blocks", "3", "--n-epochs", "2", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
             "--batch-size", "16", "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "3",
             "--threads", "1", "--sp-ratio", "0.5", "--runs-dir", str(out / "runs")]  # fmt: skip
@@ -71,4 +86,5 @@ def main(out: Path):
 
 
 if __name__ == "__main__":
-    gh.leave(main(Path(sys.argv[1])))  # as the scripts leave: gloo's thread can abort a normal exit
+    num_envs = int(sys.argv[3]) if sys.argv[2:3] == ["--num-envs"] else 1
+    gh.leave(main(Path(sys.argv[1]), num_envs))  # as the scripts leave: gloo's thread can abort a normal exit

@@ -51,8 +51,8 @@ def without_goal_sampler(text: str) -> str:
     text = re.sub(r"(?s)(n_blocks: int = 5\n.*?\n)(.*?)(    n_epochs: int)", r"\1\3", text)
     text = re.sub(r"(?s)STRATEGIES = .*?\n\n\n", "", text)
     text = re.sub(r"(?s)def check_sampler_args.*?(?=" + re.escape(BANNER) + ")", "", text)
-    sampler_section = r"# (HME: the social partner|The goal sampler).*?(?=" + re.escape(BANNER) + "# Rollouts)"
-    text = re.sub(r"(?s)" + re.escape(BANNER) + sampler_section, "", text)
+    sampler = r"# (HME: the social partner|The goal sampler).*?(?=" + re.escape(BANNER) + "# Workers and rollouts)"
+    text = re.sub(r"(?s)" + re.escape(BANNER) + sampler, "", text)
     text = re.sub(r"(?s)    # --- the goal sampler.*?(?=    # --- learning)", "", text)
     text = re.sub(r".*info.update\(self.train_vds\(\)\).*\n", "", text)
     return re.sub(r'.*f"run folder.*\n', "", text)
@@ -115,15 +115,16 @@ def test_lp_goals_come_from_discovered_configs_of_the_drawn_class():
     learner = lp.Learner(lp.Args(n_blocks=3, n_segments=1, segment_len=5, stable_steps=2), torch.device("cpu"))
     apart = int(og.to_mask(og.make_config(3)))
     learner.graph.add_config(apart)
-    assert learner.autotelic_goal() == apart and learner.drawn_from is None  # no bucket yet: autotelic
+    (w,) = learner.workers
+    assert learner.autotelic_goal(w) == apart and w.drawn_from is None  # no bucket yet: autotelic
     c01 = int(og.to_mask(og.make_config(3, close=[(0, 1)])))
     learner.graph.add_config(c01)  # the 3 configs of C1 are discovered
-    goals = {learner.autotelic_goal() for _ in range(50)}
+    goals = {learner.autotelic_goal(w) for _ in range(50)}
     assert goals == set(og.to_mask(og.evaluation_classes(3)["C1"]).tolist())
-    learner.goal_outcome(c01, True)
-    assert learner.attempts == [(0, True)] and learner.drawn_from == 0
-    learner.run_cycle()  # the cycle's outcomes are recorded at its end (with every worker's, SPEC §11)
-    assert list(learner.lp.outcomes[0])[0] == 1.0 and learner.attempts == []
+    learner.goal_outcome(w, c01, True)
+    assert w.attempts == [(0, True)] and w.drawn_from == 0
+    learner.after_cycle()  # the cycle's outcomes are recorded at its end (with every worker's, SPEC §11)
+    assert list(learner.lp.outcomes[0]) == [1.0] and w.attempts == []
 
 
 # ------------------------------------------------------------------------------------------------
@@ -138,8 +139,9 @@ def vds_learner(**kw):
 def test_disagreement_is_the_std_of_the_heads_q_values_for_each_candidate():
     learner = vds_learner()
     candidates = og.to_mask(og.evaluation_classes(3)["S2"])
-    score = learner.disagreement(candidates)
-    obs = learner.env.set_goal(learner.env.goal)
+    (w,) = learner.workers
+    score = learner.disagreement(w, candidates)
+    obs = w.env.set_goal(w.env.goal)
     with torch.no_grad():
         for c, s in zip(candidates, score, strict=True):
             o = torch.as_tensor(learner.agent.normalizer(obs["observation"])[None])
@@ -160,8 +162,8 @@ def test_goals_are_drawn_in_proportion_to_softmax_of_disagreement_over_temperatu
         learner.graph.add_config(int(c))
     nodes = np.asarray(learner.graph.masks)
     scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
-    monkeypatch.setattr(learner, "disagreement", lambda cand: np.array([scores[int(c)] for c in cand]))
-    draws = [learner.autotelic_goal() for _ in range(6000)]
+    monkeypatch.setattr(learner, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
+    draws = [learner.autotelic_goal(learner.workers[0]) for _ in range(6000)]
     freq = np.array([draws.count(m) for m in nodes]) / len(draws)
     expected = vds.softmax(np.array([0.0, 0.5, 1.0]) / temperature)
     np.testing.assert_allclose(freq, expected, atol=0.02)
@@ -173,8 +175,8 @@ def test_a_tiny_temperature_draws_the_most_disputed_goal_instead_of_failing(monk
         learner.graph.add_config(int(c))
     nodes = np.asarray(learner.graph.masks)
     scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
-    monkeypatch.setattr(learner, "disagreement", lambda cand: np.array([scores[int(c)] for c in cand]))
-    assert {learner.autotelic_goal() for _ in range(50)} == {int(nodes[2])}
+    monkeypatch.setattr(learner, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
+    assert {learner.autotelic_goal(learner.workers[0]) for _ in range(50)} == {int(nodes[2])}
 
 
 @pytest.mark.parametrize(
@@ -199,8 +201,8 @@ def test_at_most_1000_candidates_are_scored_all_from_the_agent_graph(monkeypatch
     for i in range(2500):
         learner.graph._add_node(i)  # plain ids as configs
     seen = []
-    monkeypatch.setattr(learner, "disagreement", lambda cand: seen.append(cand) or np.zeros(len(cand)))
-    learner.autotelic_goal()
+    monkeypatch.setattr(learner, "disagreement", lambda w, cand: seen.append(cand) or np.zeros(len(cand)))
+    learner.autotelic_goal(learner.workers[0])
     assert len(seen[0]) == 1000 and len(set(seen[0].tolist())) == 1000 and seen[0].max() < 2500
 
 
@@ -212,6 +214,6 @@ def test_vds_heads_regress_the_critics_td_targets():
     buf = filled_buffer()
     losses = []
     for _ in range(60):
-        learner.agent.update(buf.sample(64, rng, 0.8, "final"))
+        learner.agent.update(buf.sample(64, [rng], 0.8, "final"))
         losses.append(learner.train_vds()["vds_loss"])
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])

@@ -1,7 +1,9 @@
-"""Distributed runs (SPEC §11): two CPU workers launched by torchrun behave as one learner.
+"""Distributed runs (SPEC §11): two CPU workers launched by torchrun behave as one learner, and as two
+workers in one process (--num-envs 2).
 
-One torchrun launch (tests/dist_worker.py) serves every test here: each worker makes one SAC update on
-its own fixed batch, trains a few cycles with the social partner, then runs a tiny gangstr_hme.main."""
+One torchrun launch and one single-process launch of tests/dist_worker.py serve every test here: each
+process makes one SAC update on its workers' fixed batches, trains a few cycles with the social partner,
+then (under torchrun) runs a tiny gangstr_hme.main."""
 
 import csv
 import subprocess
@@ -28,6 +30,15 @@ def workers(tmp_path_factory):
     return out, ranks, proc.stdout
 
 
+@pytest.fixture(scope="module")
+def lockstep(workers):
+    out = workers[0]
+    cmd = [sys.executable, "tests/dist_worker.py", str(out), "--num-envs", "2"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return torch.load(out / "lockstep0.pt", weights_only=True)
+
+
 def test_workers_start_from_the_same_parameters_and_stay_identical_after_updates(workers):
     _, (r0, r1), _ = workers
     assert r0["world"] == r1["world"] == 2
@@ -40,16 +51,16 @@ def test_workers_start_from_the_same_parameters_and_stay_identical_after_updates
 def test_an_update_sums_both_workers_gradients_like_one_process_on_both_batches(workers):
     _, ranks, _ = workers
     r0, r1 = ranks
-    assert not torch.equal(r0["batch"]["obs"], r1["batch"]["obs"])  # two different batches
+    (b0,), (b1,) = r0["batches"], r1["batches"]
+    assert not torch.equal(b0["obs"], b1["obs"])  # two different batches
     sac = gh.SAC(gh.Args(**TINY), 55, torch.device("cpu"))
     sac.actor.load_state_dict(r0["initial"]["actor"])
     sac.critic.load_state_dict(r0["initial"]["critic"])
     sac.critic_target.load_state_dict(r0["initial"]["critic"])
     actor_params = list(sac.actor.parameters())
     actor_grads = [torch.zeros_like(p) for p in actor_params]
-    for r, data in enumerate(ranks):  # one process, both batches, with each worker's random draws
-        torch.manual_seed(7 + r)
-        critic_loss, actor_loss, _ = sac.losses(sac.to_tensors({k: v.numpy() for k, v in data["batch"].items()}))
+    for batch in (b0, b1):  # one process, one worker, both batches (the noise of their policy samples included)
+        critic_loss, actor_loss, _ = sac.losses(sac.to_tensors({k: v.numpy() for k, v in batch.items()}))
         critic_loss.backward()  # accumulates: the sum of the two workers' critic gradients
         for acc, g in zip(actor_grads, torch.autograd.grad(actor_loss, actor_params), strict=True):
             acc += g
@@ -65,6 +76,35 @@ def test_an_update_sums_both_workers_gradients_like_one_process_on_both_batches(
         for name, t in getattr(sac, net).state_dict().items():
             for data in ranks:
                 torch.testing.assert_close(data["after_one"][net][name], t, rtol=1e-5, atol=1e-6)
+
+
+def test_two_workers_in_one_process_run_what_two_processes_run(workers, lockstep):
+    """--num-envs 2 in one process and torchrun --nproc-per-node 2, same seeds (SPEC §11)."""
+    _, (r0, r1), _ = workers
+    assert lockstep["world"] == 1 and r0["world"] == 2
+    for net in ("actor", "critic"):  # the same networks to start with ...
+        for name, t in r0["initial"][net].items():
+            assert torch.equal(t, lockstep["initial"][net][name]), name
+    # ... the same segments in the first cycle: worker i of the process is worker i of torchrun ...
+    assert lockstep["first_cycle"].shape == (2, TINY["n_segments"], 4)
+    assert torch.equal(lockstep["first_cycle"], torch.cat([r0["first_cycle"], r1["first_cycle"]]))
+    assert len(set(lockstep["first_cycle"][:, :, 0].reshape(-1).tolist())) > 2  # goals that vary
+    # ... the same semantic graph, internalized pairs and configs met after a few cycles ...
+    assert len(lockstep["graph"]["masks"]) > 1 and len(lockstep["internalization"]) > 0
+    for key in ("masks", "edges", "class_keys", "sr"):
+        assert torch.equal(r0["graph"][key], lockstep["graph"][key]), key
+    assert torch.equal(r0["internalization"], lockstep["internalization"])
+    assert torch.equal(r0["encountered"], lockstep["encountered"])
+    assert lockstep["segments"] == r0["segments"] and lockstep["buffer_size"] == r0["buffer_size"]
+    # ... the same normalizer statistics (to float tolerance: one forward pass acts for both workers, which
+    # rounds differently from two) ...
+    torch.testing.assert_close(lockstep["normalizer"], r0["normalizer"], rtol=1e-5, atol=1e-4)
+    # ... and, from the same fixed batches, the same parameters after one update.
+    pairs = zip(lockstep["batches"], r0["batches"] + r1["batches"], strict=True)
+    assert all(torch.equal(a["obs"], b["obs"]) for a, b in pairs)
+    for net in ("actor", "critic"):
+        for name, t in lockstep["after_one"][net].items():
+            torch.testing.assert_close(r0["after_one"][net][name], t, rtol=1e-5, atol=1e-6)
 
 
 def test_semantic_graphs_normalizers_and_internalization_buffers_are_identical_on_both_workers(workers):
@@ -117,3 +157,74 @@ def test_the_baselines_train_with_two_workers(tmp_path, script):
     with (run / "progress.csv").open() as f:
         (row,) = list(csv.DictReader(f))
     assert int(row["env_steps"]) == 2 * 2 * 3 * 10 and "2 worker(s)" in proc.stdout
+
+
+# ------------------------------------------------------------------------------------------------
+# Several workers in one process (--num-envs): resume, evaluation, logs
+# ------------------------------------------------------------------------------------------------
+TWO = ["--n-blocks", "3", "--n-cycles", "2", "--n-segments", "4", "--n-updates", "3", "--batch-size", "16",
+       "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "3", "--threads", "1", "--seed", "3",
+       "--sp-ratio", "0.3", "--num-envs", "2"]  # fmt: skip
+TIMING = ("time_", "steps_per_second")
+
+
+def run(*argv, runs: Path, script="gangstr_hme.py") -> subprocess.CompletedProcess:
+    cmd = [sys.executable, script, *argv, "--runs-dir", str(runs)]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    return proc
+
+
+def rows_of(runs: Path) -> list[dict]:
+    (folder,) = runs.iterdir()
+    with (folder / "progress.csv").open() as f:
+        return [{k: v for k, v in r.items() if not k.startswith(TIMING)} for r in csv.DictReader(f)]
+
+
+def test_a_two_worker_process_resumed_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
+    run(*TWO, "--n-epochs", "3", runs=tmp_path / "a")
+    run(*TWO, "--n-epochs", "1", runs=tmp_path / "b")
+    (folder,) = (tmp_path / "b").iterdir()
+    state = torch.load(folder / "checkpoint.pt", weights_only=True)
+    assert len(state["rng"]) == 2 and state["buffer"]["obs"].shape[:2] == (2, 8)  # each worker's stream and replay
+    run("--resume", str(folder / "checkpoint.pt"), "--n-epochs", "3", runs=tmp_path / "b")
+    a, b = rows_of(tmp_path / "a"), rows_of(tmp_path / "b")
+    assert len(a) == 3 and a == b
+
+
+def test_per_worker_counts_are_summed_in_the_logs(tmp_path):
+    proc = run(*TWO, "--n-epochs", "1", runs=tmp_path)
+    (row,) = rows_of(tmp_path)
+    assert int(row["segments"]) == 2 * 2 * 4 and int(row["env_steps"]) == 2 * 2 * 4 * 10  # both workers'
+    assert int(row["goals"]) >= 2 * 2  # at least one goal per cycle and worker
+    social = float(row["social_share"]) * 4  # a share of both workers' 4 cycles
+    assert abs(social - round(social)) < 1e-9 and "2 worker(s)" in proc.stdout
+
+
+def test_evaluation_goals_are_split_between_the_workers_of_a_process():
+    learner = gh.Learner(gh.Args(n_blocks=3, num_envs=2, eval_goals_per_class=3, segment_len=4, stable_steps=2,
+                                 buffer_size=400), torch.device("cpu"))  # fmt: skip
+    resets = []
+    for w in learner.workers:
+        reset = w.env.reset
+        w.env.reset = lambda w=w, reset=reset, **kw: resets.append(w.index) or reset(**kw)
+    sr = learner.evaluate()
+    classes = len(learner.classes)
+    assert resets.count(0) == 2 * classes and resets.count(1) == classes  # goal i of each class to worker i mod 2
+    assert set(sr) == {*learner.classes, "global"}
+
+
+@pytest.mark.parametrize("num_envs", ["1", "3"])
+def test_eval_only_runs_any_number_of_workers_on_a_two_worker_checkpoint(tmp_path, num_envs):
+    run(*TWO, "--n-epochs", "1", runs=tmp_path)
+    (folder,) = tmp_path.iterdir()
+    argv = ["--eval-only", "--checkpoint", str(folder / "checkpoint.pt"), "--num-envs", num_envs, "--threads", "1"]
+    out = run(*argv, runs=tmp_path)
+    assert "global  SR" in out.stdout and len(list(folder.glob("eval_*.json"))) == 1
+
+
+@pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
+def test_the_baselines_train_with_two_workers_in_one_process(tmp_path, script):
+    run(*TWO[:-4], "--num-envs", "2", "--n-epochs", "1", runs=tmp_path, script=script)  # without --sp-ratio
+    (row,) = rows_of(tmp_path)
+    assert int(row["env_steps"]) == 2 * 2 * 4 * 10

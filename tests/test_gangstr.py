@@ -124,10 +124,10 @@ def test_parameter_count_matches_the_layer_sizes_of_the_spec():
 # ------------------------------------------------------------------------------------------------
 def filled_buffer(n_seg=50, T=10, dim=9, seed=0):
     rng = np.random.default_rng(seed)
-    buf = gh.ReplayBuffer(n_seg, T, 55, dim)
-    ag = np.where(rng.random((n_seg, T + 1, dim)) < 0.5, 1, -1).astype(np.float32)
-    g = np.ones((n_seg, dim), np.float32)  # never achieved: any match with an achieved config is a relabel
-    buf.store(rng.normal(size=(n_seg, T + 1, 55)).astype(np.float32), ag, g, rng.normal(size=(n_seg, T, 4)))
+    buf = gh.ReplayBuffer(1, n_seg, T, 55, dim)  # one worker's
+    ag = np.where(rng.random((1, n_seg, T + 1, dim)) < 0.5, 1, -1).astype(np.float32)
+    g = np.ones((1, n_seg, dim), np.float32)  # never achieved: any match with an achieved config is a relabel
+    buf.store(rng.normal(size=(1, n_seg, T + 1, 55)).astype(np.float32), ag, g, rng.normal(size=(1, n_seg, T, 4)))
     return buf
 
 
@@ -141,16 +141,16 @@ def test_acting_follows_every_update_and_checkpoint_load_of_the_trained_weights(
         with torch.no_grad():
             return torch.tanh(forward(agent, obs, ag, goal, torch.zeros(1, 4))[0, :4]).numpy()
 
-    before = agent.act(o, a, g, deterministic=True)
+    before = agent.act(o[None], a[None], g[None])[0]
     np.testing.assert_allclose(before, policy_mean(), rtol=1e-5, atol=1e-6)
-    agent.update(filled_buffer().sample(32, np.random.default_rng(0), 0.8, "final"))
-    after = agent.act(o, a, g, deterministic=True)
+    agent.update(filled_buffer().sample(32, [np.random.default_rng(0)], 0.8, "final"))
+    after = agent.act(o[None], a[None], g[None])[0]
     assert not np.allclose(before, after)
     np.testing.assert_allclose(after, policy_mean(), rtol=1e-5, atol=1e-6)
     other = gh.SAC(gh.Args(n_blocks=3, seed=9), 55, torch.device("cpu"))
     agent.actor.load_state_dict(other.actor.state_dict())
     agent.critic.load_state_dict(other.critic.state_dict())
-    np.testing.assert_allclose(agent.act(o, a, g, deterministic=True), policy_mean(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(agent.act(o[None], a[None], g[None])[0], policy_mean(), rtol=1e-5, atol=1e-6)
     acting = [*vars(agent.acting_actor.node.hidden).values(), agent.acting_critic.message.hidden.weight]
     assert not any(isinstance(t, torch.Tensor) and t.requires_grad for t in acting)
 
@@ -158,8 +158,8 @@ def test_acting_follows_every_update_and_checkpoint_load_of_the_trained_weights(
 def test_her_final_relabels_about_80_percent_with_the_last_achieved_config_and_recomputes_rewards():
     buf = filled_buffer()
     rng = np.random.default_rng(1)
-    b = buf.sample(20000, rng, her_prob=1 - 1 / (1 + 4), strategy="final")
-    finals = buf.ag[:, -1].astype(np.float32)
+    b = buf.sample(20000, [rng], her_prob=1 - 1 / (1 + 4), strategy="final")
+    finals = buf.ag[0, :, -1].astype(np.float32)
     relabelled = (b["g"][:, None, :] == finals[None]).all(-1).any(-1)
     assert abs(relabelled.mean() - 0.8) < 0.015
     assert ((b["g"] == 1).all(1) | relabelled).all()  # every goal is the original or a final config
@@ -169,9 +169,9 @@ def test_her_final_relabels_about_80_percent_with_the_last_achieved_config_and_r
 
 def test_her_future_relabels_with_a_later_achieved_config_of_the_same_segment():
     buf = filled_buffer(n_seg=1, T=10)
-    b = buf.sample(4000, np.random.default_rng(2), her_prob=1.0, strategy="future")
-    later = np.array([[(buf.ag[0, u] == g).all() for u in range(11)] for g in b["g"][:200]])
-    t = np.array([np.flatnonzero((buf.obs[0] == o).all(1))[0] for o in b["obs"][:200]])
+    b = buf.sample(4000, [np.random.default_rng(2)], her_prob=1.0, strategy="future")
+    later = np.array([[(buf.ag[0, 0, u] == g).all() for u in range(11)] for g in b["g"][:200]])
+    t = np.array([np.flatnonzero((buf.obs[0, 0] == o).all(1))[0] for o in b["obs"][:200]])
     assert all(later[i, t[i] + 1 :].any() for i in range(200))
 
 
@@ -182,22 +182,23 @@ def test_sac_losses_follow_the_spec_on_a_tiny_batch():
     obs, ag, goal, act = random_inputs(3, batch=3)
     obs2, ag2, _, _ = random_inputs(3, batch=3, seed=1)
     batch = dict(obs=obs.numpy(), obs_next=obs2.numpy(), ag=ag.numpy(), ag_next=ag2.numpy(), g=goal.numpy(),
-                 action=act.numpy(), reward=np.array([1.0, 0.0, 1.0], np.float32))  # fmt: skip
+                 action=act.numpy(), reward=np.array([1.0, 0.0, 1.0], np.float32),
+                 noise_next=np.float32([[0.1, -2, 0.5, 0]] * 3),  # the draws of the next action's sample
+                 noise_pi=np.float32([[1, 0.3, -0.2, 0.7]] * 3))  # ... and of the actor loss's  # fmt: skip
     t = agent.to_tensors(batch)
-    torch.manual_seed(5)
     critic_loss, actor_loss, _ = agent.losses(t)
-    # By hand, with the same random draws.
-    torch.manual_seed(5)
+    # By hand, with the same standard normal draws.
     b1, k1 = gh.split_obs(t["obs"], 3)
     b2, k2 = gh.split_obs(t["obs_next"], 3)
     with torch.no_grad():
-        a2, logp2 = agent.actor.sample(b2, k2, agent.critic.messages(agent.gi, k2, t["g"] - t["ag_next"]))
+        msg2 = agent.critic.messages(agent.gi, k2, t["g"] - t["ag_next"])
+        a2, logp2 = agent.actor.sample(b2, k2, msg2, t["noise_next"])
         tq = agent.critic_target.q(b2, k2, a2, agent.critic_target.messages(agent.gi, k2, t["g"] - t["ag_next"]))
         y = t["reward"] + 0.99 * (torch.min(tq[0], tq[1]) - 0.2 * logp2)
         msg = agent.critic.messages(agent.gi, k1, t["g"] - t["ag"])
         q1, q2 = agent.critic.q(b1, k1, t["action"], msg)
         expected_critic = ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()
-        pi, logp = agent.actor.sample(b1, k1, msg)
+        pi, logp = agent.actor.sample(b1, k1, msg, t["noise_pi"])
         qp = agent.critic.q(b1, k1, pi, msg)
         expected_actor = (0.2 * logp - torch.min(qp[0], qp[1])).mean()
     torch.testing.assert_close(critic_loss, expected_critic)
@@ -210,7 +211,7 @@ def test_actor_loss_moves_the_actor_only_and_the_message_net_learns_from_the_cri
     buf = filled_buffer()
     before = {k: v.clone() for k, v in agent.critic.state_dict().items()}
     actor_before = [p.clone() for p in agent.actor.parameters()]
-    agent.update(buf.sample(32, np.random.default_rng(0), 0.8, "final"))
+    agent.update(buf.sample(32, [np.random.default_rng(0)], 0.8, "final"))
     # lr_critic = 0: had the actor loss leaked into the critic, Adam would still not move it; check grads
     msg_grads = [p.grad for p in agent.critic.message.parameters()]
     assert all(g is not None and g.abs().sum() > 0 for g in msg_grads)
@@ -224,9 +225,9 @@ def test_target_critic_is_polyak_averaged_with_0_95_every_second_update():
     buf = filled_buffer()
     rng = np.random.default_rng(0)
     target0 = [p.clone() for p in agent.critic_target.parameters()]
-    agent.update(buf.sample(32, rng, 0.8, "final"))
+    agent.update(buf.sample(32, [rng], 0.8, "final"))
     assert all(torch.equal(a, b) for a, b in zip(target0, agent.critic_target.parameters(), strict=True))
-    agent.update(buf.sample(32, rng, 0.8, "final"))
+    agent.update(buf.sample(32, [rng], 0.8, "final"))
     for t0, t1, p in zip(target0, agent.critic_target.parameters(), agent.critic.parameters(), strict=True):
         torch.testing.assert_close(t1, 0.95 * t0 + 0.05 * p)
 
@@ -320,9 +321,11 @@ class ScriptedConfigs:
 @pytest.mark.parametrize("switch, stable", [(1, True), (3, True), (4, False), (6, False)])
 def test_a_segment_is_stable_only_if_its_final_config_held_over_the_last_stable_steps(switch, stable):
     args = gh.Args(n_blocks=3, segment_len=6, stable_steps=3)
-    agent = gh.Learner(args, torch.device("cpu")).agent
+    learner = gh.Learner(args, torch.device("cpu"))
     apart, pair = og.make_config(3), og.make_config(3, close=[(0, 1)])
-    seg = gh.run_segment(ScriptedConfigs(apart, pair, switch), agent, pair, args, deterministic=True)
+    (w,) = learner.workers
+    w.env = ScriptedConfigs(apart, pair, switch)
+    (seg,) = learner.run_segments([w], [gh.Request(int(og.to_mask(pair)), deterministic=True)])
     assert seg.obs.shape == (7, 55) and seg.ag.shape == (7, 9) and seg.actions.shape == (6, 4)
     assert seg.stable == stable  # the config after step 3 must already be the final one
     assert seg.success  # success reads the final config only
@@ -774,7 +777,8 @@ def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path
     assert run_script("--sp-ratio", "0", "--n-blocks", "3", *TINY, runs_dir=tmp_path).returncode == 0
     (run,) = tmp_path.iterdir()
     argv = ["--eval-only", "--checkpoint", str(run / "checkpoint.pt"), "--eval-goals-per-class", "2",
-            "--capture-video", "--video-episodes", "1", "--seed", "4", "--threads", "1"]  # fmt: skip
+            "--capture-video", "--video-episodes", "1", "--seed", "4", "--threads", "1",
+            "--num-envs", "2"]  # two workers evaluate (the checkpoint's run had one); worker 0 films  # fmt: skip
     out = run_script(*argv, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     classes = list(og.evaluation_classes(3))

@@ -148,22 +148,23 @@ def test_with_no_stepping_stone_left_the_partner_proposes_nothing(sp):
 # 2. The social cycle, step by step, with a scripted stand-in for the policy
 # ------------------------------------------------------------------------------------------------
 class ScriptedWorld:
-    """Replaces the policy and the physics: a segment toward goal g succeeds iff script(g, deterministic)
-    says so, and the world's config becomes g on success. Every reset goes back to `start`."""
+    """Replaces the policy and the physics of the learner's one worker: a segment toward goal g succeeds
+    iff script(g, deterministic) says so, and the world's config becomes g on success. Every reset goes
+    back to `start`."""
 
     def __init__(self, learner, monkeypatch, start, script):
         self.config, self.start, self.script, self.log = start, start, script, []
-        monkeypatch.setattr(learner.env, "reset", self.reset)
+        monkeypatch.setattr(learner.workers[0].env, "reset", self.reset)
         monkeypatch.setattr(gh, "current_config", lambda env: self.config)
-        monkeypatch.setattr(gh, "run_segment", self.segment)
+        monkeypatch.setattr(learner, "run_segments", lambda workers, requests: [self.segment(learner.args, *r[:2])
+                                                                                for r in requests])  # fmt: skip
 
     def reset(self, **kw):
         self.config = self.start
         self.log.append("reset")
 
-    def segment(self, env, agent, goal, args, deterministic, frames=None):
-        g = int(og.to_mask(goal))
-        before = self.config
+    def segment(self, args, g, deterministic):
+        goal, before = og.from_mask(g, N), self.config
         success = self.script(g, deterministic)
         self.config = g if success else before
         self.log.append((g, "det" if deterministic else "stoch", success))
@@ -176,6 +177,16 @@ class ScriptedWorld:
 def hme_learner(**kw):
     args = dict(n_blocks=N, sp_ratio=1.0, segment_len=4, stable_steps=2) | kw
     return gh.Learner(gh.Args(**args), torch.device("cpu"))
+
+
+def run(learner, program) -> list:
+    """One cycle of the learner's one worker running `program` (a cycle program such as
+    learner.social_cycle), its pairs merged at the end as after any cycle; the cycle's segments."""
+    (w,) = learner.workers
+    w.left, w.segments = learner.args.n_segments, []
+    learner.drive({w: program(w)})
+    learner.after_cycle()
+    return w.segments
 
 
 def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
@@ -194,7 +205,7 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
         return len(beyond_tries) % 2 == 1  # beyond goals: success, failure, success, failure, ...
 
     world = ScriptedWorld(learner, monkeypatch, APART, script)
-    segments = learner.social_cycle()
+    segments = run(learner, learner.social_cycle)
     assert len(segments) == learner.args.n_segments == 10
     log = world.log
     i, episodes, failed = 0, 0, []
@@ -231,7 +242,7 @@ def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_an
         return len(tries) % 3 != 0  # every third frontier leg fails
 
     world = ScriptedWorld(learner, monkeypatch, APART, script)
-    assert len(learner.social_cycle()) == 10
+    assert len(run(learner, learner.social_cycle)) == 10
     # SPEC §7, --strategy frontier: reset, the frontier goal along the safest path with the
     # deterministic policy (here one small step), then reset again; no beyond goal, nothing stored.
     assert world.log[0::2] == ["reset"] * 10
@@ -255,7 +266,7 @@ def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset
         return len(tries) % 3 == 0  # each goal is reached at the third attempt
 
     world = ScriptedWorld(learner, monkeypatch, APART, script)
-    assert len(learner.social_cycle()) == 10
+    assert len(run(learner, learner.social_cycle)) == 10
     # SPEC §7, --strategy beyond: reset, one goal beyond a frontier the agent is not shown, attempted
     # directly with the stochastic policy, again and again without reset until reached; nothing stored.
     episodes = " ".join("R" if e == "reset" else ("+" if e[2] else "-") for e in world.log).split("R")[1:]
@@ -276,7 +287,7 @@ def rehearsed_goals(learner, monkeypatch, cycles):
     """The beyond goals attempted over `cycles` rehearsal cycles, every frontier reached."""
     world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)
     for _ in range(cycles):
-        learner.rehearsal_cycle()
+        run(learner, learner.rehearsal_cycle)
     return [e[0] for e in world.log if e != "reset" and e[1] == "stoch"]
 
 
@@ -285,7 +296,8 @@ def test_a_pair_failed_again_and_again_is_stored_once_and_rehearsed_as_often_as_
     learner.graph = agent_graph([(APART, C01)])
     failures = [C01_BEYOND[0]] * 10 + [C01_BEYOND[1]] + [C01_BEYOND[2]] * 3
     for beyond in failures:
-        learner.internalize(C01, beyond)
+        learner.internalize(learner.workers[0], C01, beyond)
+    learner.after_cycle()
     assert learner.internalization_buffer == [(C01, b) for b in C01_BEYOND[:3]]  # SPEC §7: a set
     counts = np.unique(rehearsed_goals(learner, monkeypatch, 300), return_counts=True)[1]
     assert len(counts) == 3 and counts.sum() == 1500  # 5 draws a cycle: frontier leg, beyond attempt
@@ -300,10 +312,10 @@ def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypa
     learner.graph = agent_graph([(APART, C01)])
     learner.internalization_buffer = [a]
 
-    def cycle(budget):
+    def cycle(w):
         for pair in stored[rank]:
-            learner.internalize(*pair)
-        return []
+            learner.internalize(w, *pair)
+        yield from ()  # a cycle program that runs no segment
 
     local = {0: np.array([b, c]), 1: np.array([c, d])}  # what each worker keeps: its new distinct pairs
 
@@ -311,12 +323,13 @@ def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypa
         np.testing.assert_array_equal(rows, local[rank])
         return np.concatenate([local[0], local[1]])  # rank order
 
-    monkeypatch.setattr(learner, "autotelic_cycle", cycle)
+    monkeypatch.setattr(learner, "autotelic_goals", cycle)
     monkeypatch.setattr(gh, "all_gather_rows", all_gather_rows)
     learner.run_cycle()
     # The same distinct pairs in the same order on every worker (so a seeded draw agrees): the old
     # ones, then the new ones in rank order.
     assert learner.internalization_buffer == [a, b, c, d]
+    monkeypatch.setattr(gh, "all_gather_rows", lambda rows: rows)  # one worker from here on
     counts = np.unique(rehearsed_goals(learner, monkeypatch, 200), return_counts=True)[1]
     assert len(counts) == 4 and uniform_pvalue(counts) > 1e-3
 
@@ -327,7 +340,7 @@ def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_g
     stack = M(close=[(0, 1)], above=[(0, 1)])
     learner.internalization_buffer = [(C01, stack)]
     world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)  # beyond attempts fail
-    segments = learner.rehearsal_cycle()
+    segments = run(learner, learner.rehearsal_cycle)
     assert len(segments) == 10
     # One attempt per drawn pair (no reset between frontier and beyond), then reset and draw again.
     assert world.log == ["reset", (C01, "det", True), (stack, "stoch", False)] * 5
@@ -338,7 +351,7 @@ def test_a_partner_with_nothing_to_propose_leaves_the_cycle_autotelic(monkeypatc
     everything = [(int(sp.edge_heads[k]), int(sp.edge_tails[k])) for k in range(len(sp.edge_heads))]
     learner.graph = agent_graph(everything)
     world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: False)
-    assert len(learner.social_cycle()) == 10
+    assert len(run(learner, learner.social_cycle)) == 10
     assert not any(k.startswith("sp_") for k in learner.stats) and not learner.internalization_buffer
     assert all(e == "reset" or e[1] == "stoch" for e in world.log)  # autotelic goals, training policy
 

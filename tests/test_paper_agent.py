@@ -112,7 +112,7 @@ def test_the_papers_file_loads_into_our_networks_with_identical_actions_and_q_va
     expected = outputs(original, normalized)  # our original networks, not through the loader
     for got, want in zip(outputs(loaded, loaded.normalizer(obs)), expected, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
-    acts = np.stack([loaded.act(obs[i], ag[i], g[i], deterministic=True) for i in range(8)])
+    acts = loaded.act(obs, ag, g)  # the deterministic policy, 8 observations in one pass
     torch.testing.assert_close(torch.as_tensor(acts), torch.tanh(expected[0]), rtol=1e-6, atol=1e-6)
     for p, q in zip(loaded.critic_target.parameters(), original.critic.parameters(), strict=True):
         assert torch.equal(p, q)  # the file has no target critic: it starts as a copy of the critic
