@@ -117,6 +117,8 @@ class Args:
     """torch CPU threads (0: all cores)"""
     cuda: bool = False
     """train on the GPU if one is available"""
+    compile: bool = False
+    """compile the SAC losses with torch.compile (start-up: a minute or more; see README)"""
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
     init_from: str = ""
@@ -592,6 +594,8 @@ class SAC:
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
+        # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
+        self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
@@ -619,36 +623,33 @@ class SAC:
             tmsg2 = self.critic_target.messages(gi, blocks2, gap2)
             q_next = torch.min(*self.critic_target.q(body2, blocks2, a2, tmsg2))
             target = batch["reward"] + a.gamma * (q_next - a.alpha * logp2)  # no terminal masking
-            self.last_target = target
         msg = self.critic.messages(gi, blocks, batch["g"] - batch["ag"])
         q1, q2 = self.critic.q(body, blocks, batch["action"], msg)
         critic_loss = workers * (F.mse_loss(q1, target) + F.mse_loss(q2, target))
-        # The actor reads detached messages: the message net learns from the critic loss only.
+        # The actor loss reaches the actor's weights alone: its gradient flows through the critic's Q heads to
+        # the action, but the critic's weights are constants there (acting_critic), and its messages detached
+        # (the message net learns from the critic loss only).
         pi, logp = self.actor.sample(body, blocks, msg.detach(), batch["noise_pi"])
-        q_pi = torch.min(*self.critic.q(body, blocks, pi, msg.detach()))
+        q_pi = torch.min(*self.acting_critic.q(body, blocks, pi, msg.detach()))
         actor_loss = workers * (a.alpha * logp - q_pi).mean()
-        info = dict(critic_loss=critic_loss.item() / workers, actor_loss=actor_loss.item() / workers,
-                    q=q1.mean().item(), target=target.mean().item(), entropy=-logp.mean().item())  # fmt: skip
-        return critic_loss, actor_loss, info
+        return critic_loss, actor_loss, target, dict(q=q1.mean(), entropy=-logp.mean())
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
-        critic_loss, actor_loss, info = self.losses(batch)
-        self.last_batch = batch  # kept for goal samplers that learn from the critic's TD targets (VDS)
+        critic_loss, actor_loss, target, stats = self.compute_losses(batch)
+        self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
+        self.actor_opt.zero_grad()
         self.critic_opt.zero_grad()
-        critic_loss.backward()
-        # The actor loss updates actor parameters only: its gradient flows through the critic's Q heads
-        # to the action, but lands on the actor's weights alone.
-        actor_params = list(self.actor.parameters())
-        for p, grad in zip(actor_params, torch.autograd.grad(actor_loss, actor_params), strict=True):
-            p.grad = grad
-        sum_grads(actor_params + list(self.critic.parameters()))
+        (critic_loss + actor_loss).backward()  # each loss reaches its own network's weights only (see losses)
+        sum_grads(list(self.actor.parameters()) + list(self.critic.parameters()))
         self.critic_opt.step()
         self.actor_opt.step()
         self.n_updates += 1
         if self.n_updates % self.args.target_update_every == 0:
             self.soft_update()
-        return info
+        workers = self.args.num_envs  # the losses are sums over workers; the logs show one worker's mean
+        return dict(critic_loss=critic_loss.item() / workers, actor_loss=actor_loss.item() / workers,
+                    target=target.mean().item(), **{k: v.item() for k, v in stats.items()})  # fmt: skip
 
     @torch.no_grad()
     def soft_update(self):

@@ -93,6 +93,7 @@ def main():
     parser.add_argument("--cycles-24", type=int, default=2, help="timed cycles of the 24-worker learner")
     parser.add_argument("--cuda", action="store_true", help="the 24-worker learner on the GPU")
     parser.add_argument("--skip-scaling", action="store_true", help="only the 24-worker cycle")
+    parser.add_argument("--skip-24", action="store_true", help="only the 1- and 2-worker conditions")
     args = parser.parse_args()
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
     conditions = {
@@ -112,6 +113,8 @@ def main():
         lockstep, torchrun_2 = med["1 process, 2 workers (--num-envs 2)"], med["2 processes x 1 worker (torchrun)"]
         print(f"  ratio --num-envs 2 / torchrun 2 x 1:   {lockstep / torchrun_2:.2f}x")
         print(f"  ratio --num-envs 2 / 1 worker:         {lockstep / med['1 process, 1 worker']:.2f}x")
+    if args.skip_24:
+        return
     total, split = cycle_profile(args)
     device = torch.cuda.get_device_name() if args.cuda else f"CPU, {torch.get_num_threads()} torch threads"
     print(f"24 workers in one process ({device}): {total:.2f} s per cycle "

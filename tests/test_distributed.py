@@ -60,7 +60,7 @@ def test_an_update_sums_both_workers_gradients_like_one_process_on_both_batches(
     actor_params = list(sac.actor.parameters())
     actor_grads = [torch.zeros_like(p) for p in actor_params]
     for batch in (b0, b1):  # one process, one worker, both batches (the noise of their policy samples included)
-        critic_loss, actor_loss, _ = sac.losses(sac.to_tensors({k: v.numpy() for k, v in batch.items()}))
+        critic_loss, actor_loss, _, _ = sac.losses(sac.to_tensors({k: v.numpy() for k, v in batch.items()}))
         critic_loss.backward()  # accumulates: the sum of the two workers' critic gradients
         for acc, g in zip(actor_grads, torch.autograd.grad(actor_loss, actor_params), strict=True):
             acc += g

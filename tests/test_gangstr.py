@@ -186,7 +186,7 @@ def test_sac_losses_follow_the_spec_on_a_tiny_batch():
                  noise_next=np.float32([[0.1, -2, 0.5, 0]] * 3),  # the draws of the next action's sample
                  noise_pi=np.float32([[1, 0.3, -0.2, 0.7]] * 3))  # ... and of the actor loss's  # fmt: skip
     t = agent.to_tensors(batch)
-    critic_loss, actor_loss, _ = agent.losses(t)
+    critic_loss, actor_loss, _, _ = agent.losses(t)
     # By hand, with the same standard normal draws.
     b1, k1 = gh.split_obs(t["obs"], 3)
     b2, k2 = gh.split_obs(t["obs_next"], 3)
@@ -230,6 +230,24 @@ def test_target_critic_is_polyak_averaged_with_0_95_every_second_update():
     agent.update(buf.sample(32, [rng], 0.8, "final"))
     for t0, t1, p in zip(target0, agent.critic_target.parameters(), agent.critic.parameters(), strict=True):
         torch.testing.assert_close(t1, 0.95 * t0 + 0.05 * p)
+
+
+def test_a_compiled_update_computes_the_eager_updates_losses_and_gradients():
+    """--compile (torch.compile of the losses) changes speed, not the update. (Parameters are not compared:
+    Adam's first step is about +-lr for any gradient, so a float-rounding sign flip of a near-zero one
+    shows as 2 lr.)"""
+    got = {}
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        agent = gh.SAC(gh.Args(n_blocks=3, compile=compiled), 55, torch.device("cpu"))
+        agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+        info = agent.update(filled_buffer().sample(32, [np.random.default_rng(0)], 0.8, "final"))
+        grads = {n: p.grad for net in (agent.actor, agent.critic) for n, p in net.named_parameters()}
+        got[compiled] = info, grads
+    (eager_info, eager_grads), (info, grads) = got[False], got[True]
+    assert info == pytest.approx(eager_info, rel=1e-5, abs=1e-6)
+    for name, g in eager_grads.items():
+        torch.testing.assert_close(grads[name], g, rtol=1e-3, atol=1e-4 * float(g.abs().max()))  # float32 sums
 
 
 def test_normalizer_clips_raw_values_floors_the_std_and_clips_its_output():
