@@ -10,8 +10,10 @@ partner who sometimes proposes a goal at the agent's frontier and a goal just be
     python gangstr_hme.py --sp-ratio 0 --n-blocks 3       # pure autotelic GANGSTR, 3 blocks
 
 Read top to bottom: Args, networks (SPEC §5), normalizer and HER replay, SAC, the semantic graph with
-its path planners (SPEC §6), rollouts and cycles, evaluation (SPEC §9); then the plumbing a forker may
-skip: checkpoints and the paper's trained agent, outputs (SPEC §10), interruptions; the main loop last.
+its path planners (SPEC §6), the workers and their cycles (each a program that asks for one segment
+at a time; a driver steps every worker of the process together, SPEC §11), evaluation (SPEC §9); then
+the plumbing a forker may skip: checkpoints and the paper's trained agent, outputs (SPEC §10),
+interruptions; the main loop last.
 """
 
 from __future__ import annotations
@@ -117,7 +119,7 @@ class Args:
     num_envs: int = 1
     """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0
-    """torch CPU threads (0: all cores)"""
+    """torch CPU threads (0: all cores; one while several envs step in threads, see Learner.drive)"""
     cuda: bool = False
     """train on the GPU if one is available"""
     compile: bool = False
@@ -289,10 +291,10 @@ def check_sampler_args(a: Args) -> str | None:
 
 
 # ------------------------------------------------------------------------------------------------
-# Workers (SPEC §11): one process by default; under torchrun, N workers like the paper's MPI workers
+# Processes (SPEC §11): one by default; under torchrun, several, which hold the workers between them
 # ------------------------------------------------------------------------------------------------
 def init_workers(args: Args) -> torch.device:
-    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this worker's device."""
+    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this process's device."""
     cuda = args.cuda and torch.cuda.is_available()
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
         if cuda:
@@ -314,7 +316,7 @@ def _comm_device() -> torch.device:
 
 
 def all_sum(x: np.ndarray) -> np.ndarray:
-    """Element-wise sum over workers (float64)."""
+    """Element-wise sum over processes (float64)."""
     if world() == 1:
         return x
     t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
@@ -333,7 +335,8 @@ def gather_workers(local: np.ndarray) -> np.ndarray:
 
 
 def all_gather_rows(rows: np.ndarray) -> np.ndarray:
-    """Every worker's int64 rows (any number each), concatenated in rank order: the same on every worker."""
+    """Every process's int64 rows (any number each), concatenated in rank order, so in global worker order
+    when each process gives its workers' rows in order: the same in every process."""
     rows = np.asarray(rows, dtype=np.int64)
     if world() == 1:
         return rows
@@ -349,14 +352,15 @@ def all_gather_rows(rows: np.ndarray) -> np.ndarray:
 
 
 def broadcast_params(*modules: nn.Module):
-    """Every worker starts from worker 0's parameters."""
+    """Every process starts from process 0's parameters."""
     if world() > 1:
         for t in (t for m in modules for t in m.state_dict().values()):
             dist.broadcast(t, src=0)
 
 
 def sum_grads(params: list[torch.Tensor]):
-    """Gradients summed over workers (SPEC §11), in one all-reduce."""
+    """Gradients summed over processes, in one all-reduce (within a process, the losses already sum its
+    workers', see SAC.losses): the sum over all workers of SPEC §11."""
     if world() > 1:
         grads = [p.grad for p in params]
         flat = torch.cat([g.reshape(-1) for g in grads])
@@ -994,7 +998,7 @@ class SocialPartner:
 def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:
     """The internalization buffer is a set of distinct (frontier, beyond) pairs (SPEC §7), kept as a
     list in first-stored order so that a seeded draw picks the same pair on every worker: the kept
-    pairs, then those of `new` (every worker's, in rank order) not already in."""
+    pairs, then those of `new` (every worker's, in global worker order) not already in."""
     return list(dict.fromkeys([*kept, *new]))
 
 
@@ -1084,7 +1088,8 @@ class Learner:
         self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler (all local workers)
         self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
         self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
-        cores = len(os.sched_getaffinity(0)) // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        cores //= int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # this process's share of the node's cores
         self.physics_threads = max(1, min(args.num_envs, cores))
         self.init_goal_sampler()
 
@@ -1154,16 +1159,16 @@ class Learner:
         if n == 1:
             step_some(range(len(envs)))
         else:
-            list(physics_pool(n).map(step_some, [range(i, len(envs), n) for i in range(n)]))
+            list(physics_pool(self.physics_threads).map(step_some, [range(i, len(envs), n) for i in range(n)]))
 
-    def run_cycle(self) -> list[Segment]:
+    def run_cycle(self) -> list[list[Segment]]:
         """One cycle of every worker (its goal sampler's program, see cycle_program), in lockstep; then what the
-        sampler's workers share is merged. The segments, worker after worker."""
+        sampler's workers share is merged. Each worker's segments."""
         for w in self.workers:
             w.left, w.segments = self.args.n_segments, []
         self.drive({w: self.cycle_program(w) for w in self.workers})
         self.after_cycle()
-        return [s for w in self.workers for s in w.segments]
+        return [w.segments for w in self.workers]
 
     # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
     def pursue(self, w: Worker, goal: int, explore: bool, deterministic: bool):
@@ -1342,15 +1347,16 @@ class Learner:
         """This epoch's goal-sampler counts, summed over workers."""
         return dict(zip(keys, all_sum(np.array([self.stats[k] for k in keys], dtype=np.float64)), strict=True))
 
-    def learn_from(self, segments: list[Segment]):
-        """Store each worker's segments in its replay (`segments`: worker after worker, as many each),
-        update the normalizer and the semantic graph. The normalizer and the graph learn from every
-        worker's segments, in global worker order, so that they are the same in every process and
-        whatever the split of workers into processes (SPEC §11)."""
-        per_worker = lambda x: np.stack(x).reshape(len(self.workers), -1, *np.shape(x[0]))  # noqa: E731
-        ag, obs = per_worker([s.ag for s in segments]), per_worker([s.obs for s in segments])
-        self.buffer.store(obs, ag, per_worker([s.g for s in segments]), per_worker([s.actions for s in segments]))
+    def learn_from(self, per_worker: list[list[Segment]]):
+        """Store each worker's segments (per_worker[i]: worker i's, as many for each) in its replay, update
+        the normalizer and the semantic graph. The normalizer and the graph learn from every worker's
+        segments, in global worker order, so that they are the same in every process and whatever the
+        split of workers into processes (SPEC §11)."""
+        stack = lambda field: np.array([[getattr(s, field) for s in ws] for ws in per_worker])  # noqa: E731
+        ag, obs = stack("ag"), stack("obs")  # (workers, segments, T + 1, .)
+        self.buffer.store(obs, ag, stack("g"), stack("actions"))
         self.agent.normalizer.update(obs)
+        segments = [s for ws in per_worker for s in ws]
         t = time.perf_counter()
         outcomes = all_gather_rows([(s.start, s.final, og.to_mask(s.g), s.success, s.stable) for s in segments])
         for start, final, target, success, stable in outcomes.tolist():
@@ -1434,13 +1440,13 @@ class Learner:
         )
         if self.args.save_buffer:
             b, n = self.buffer, self.buffer.size
+            # One tensor per worker: a view of worker i's first n segments holds only them, where a view of
+            # every worker's would hold (and torch.save write) the whole array between them.
             state["buffer"] = dict(
-                obs=torch.from_numpy(b.obs[:, :n]),
-                ag=torch.from_numpy(b.ag[:, :n]),
-                g=torch.from_numpy(b.g[:, :n]),
-                actions=torch.from_numpy(b.actions[:, :n]),
+                **{k: [torch.from_numpy(getattr(b, k)[i, :n]) for i in range(len(self.workers))]
+                   for k in ("obs", "ag", "g", "actions")},
                 ptr=b.ptr,
-            )
+            )  # fmt: skip
         return state
 
     def load_state_dict(self, s: dict):
@@ -1477,10 +1483,10 @@ class Learner:
             w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
             w.env.np_random.bit_generator.state = json.loads(env_rng)
         if "buffer" in s:
-            b, n = self.buffer, s["buffer"]["obs"].shape[1]
-            b.obs[:, :n], b.ag[:, :n], b.g[:, :n], b.actions[:, :n] = (
-                s["buffer"][k].numpy() for k in ("obs", "ag", "g", "actions")
-            )
+            b, n = self.buffer, len(s["buffer"]["obs"][0])
+            for k in ("obs", "ag", "g", "actions"):
+                for i, saved in enumerate(s["buffer"][k]):
+                    getattr(b, k)[i, :n] = saved.numpy()
             b.size, b.ptr = n, s["buffer"]["ptr"]
 
 
@@ -1635,7 +1641,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
     sys.exit(2)
 
 
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "save_buffer", "resume")  # what --resume may change
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "save_buffer", "resume")  # what --resume may change
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
                 "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs")  # fmt: skip
 
@@ -1898,8 +1904,9 @@ def one_cycle(learner: Learner):
     """Collect a cycle's segments, learn from them (replay, normalizer, semantic graph), then the cycle's
     SAC updates (SPEC §5)."""
     tally, t = learner.tally, time.perf_counter()
-    segments = learner.run_cycle()
-    learner.learn_from(segments)
+    per_worker = learner.run_cycle()
+    learner.learn_from(per_worker)
+    segments = [s for ws in per_worker for s in ws]
     tally["wins"] += sum(bool(s.success) for s in segments)
     tally["tries"] += len(segments)
     tally["collect"] += (t_update := time.perf_counter()) - t
@@ -2028,7 +2035,7 @@ def main(argv=None) -> int:
         args = args_with_blocks_of(args, given_flags(argv), init, args.init_from, "--init-from")
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = init_workers(args)  # under torchrun: this worker's device, and the job joined
+    device = init_workers(args)  # under torchrun: this process's device, and the job joined
     torch.manual_seed(args.seed + rank())
     try:
         return evaluate_checkpoint(args, state, device) if args.eval_only else start_run(args, state, device, init)

@@ -109,7 +109,7 @@ def main():
     # Fill the replay with real segments so that the batch is realistic.
     (w,) = learner.workers
     goal = int(gh.og.to_mask(w.env.goal))
-    learner.learn_from([learner.run_segments([w], [gh.Request(goal, False)])[0] for _ in range(30)])
+    learner.learn_from([[learner.run_segments([w], [gh.Request(goal, False)])[0] for _ in range(30)]])
     rng = np.random.default_rng(0)
     batch = learner.buffer.sample(256, [rng], 0.8, "final")
     gnn_ms = median_ms(lambda: learner.agent.update(batch), args.repeats)

@@ -6,7 +6,7 @@ plus a random delay), and --write-trials more the moment a checkpoint write begi
 column) and TensorBoard rows are compared with the uninterrupted run's, every epoch once. Prints each
 trial's exit code; not part of the test suite (which stops one run per signal).
 
-    python benchmarks/stress_interrupts.py [--trials 10] [--write-trials 4]
+    python benchmarks/stress_interrupts.py [--trials 10] [--write-trials 4] [--num-envs 1]
 """
 
 import argparse
@@ -25,6 +25,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 from test_gangstr import STOPPED, TIMING, tensorboard_rows  # noqa: E402
 
 EPOCHS, CYCLES = 6, 3  # STOPPED's
+WORKERS = ["--num-envs", "1"]  # workers in the process (--num-envs)
 
 
 def rows(run: Path) -> list[dict]:
@@ -34,7 +35,7 @@ def rows(run: Path) -> list[dict]:
 
 def trial(runs: Path, sig: signal.Signals | None, moment: str, rng: random.Random) -> tuple[Path, str]:
     """Run STOPPED, stop it with sig at the moment, resume it to the end; (run folder, what happened)."""
-    cmd = [sys.executable, "-u", "gangstr_hme.py", *STOPPED, "--runs-dir", str(runs)]
+    cmd = [sys.executable, "-u", "gangstr_hme.py", *STOPPED, *WORKERS, "--runs-dir", str(runs)]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     what = ""
     if sig is not None:
@@ -67,7 +68,9 @@ def main():
     parser.add_argument("--trials", type=int, default=10, help="random moments per signal")
     parser.add_argument("--write-trials", type=int, default=4, help="moments a checkpoint write begins, per signal")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--num-envs", type=int, default=1, help="workers in the process")
     args = parser.parse_args()
+    WORKERS[1] = str(args.num_envs)
     rng, outcomes = random.Random(args.seed), collections.Counter()
     with tempfile.TemporaryDirectory() as tmp:
         reference = trial(Path(tmp) / "reference", None, "", rng)[0]

@@ -186,7 +186,8 @@ def test_a_two_worker_process_resumed_after_an_epoch_reproduces_the_uninterrupte
     run(*TWO, "--n-epochs", "1", runs=tmp_path / "b")
     (folder,) = (tmp_path / "b").iterdir()
     state = torch.load(folder / "checkpoint.pt", weights_only=True)
-    assert len(state["rng"]) == 2 and state["buffer"]["obs"].shape[:2] == (2, 8)  # each worker's stream and replay
+    assert len(state["rng"]) == 2 and [len(x) for x in state["buffer"]["obs"]] == [8, 8]  # each worker's own
+    assert (folder / "checkpoint.pt").stat().st_size < 5e6  # the segments collected, not the replays' capacity
     run("--resume", str(folder / "checkpoint.pt"), "--n-epochs", "3", runs=tmp_path / "b")
     a, b = rows_of(tmp_path / "a"), rows_of(tmp_path / "b")
     assert len(a) == 3 and a == b

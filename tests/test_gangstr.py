@@ -248,6 +248,13 @@ def test_a_compiled_update_computes_the_eager_updates_losses_and_gradients():
     assert info == pytest.approx(eager_info, rel=1e-5, abs=1e-6)
     for name, g in eager_grads.items():
         torch.testing.assert_close(grads[name], g, rtol=1e-3, atol=1e-4 * float(g.abs().max()))  # float32 sums
+    # After more updates, the compiled losses still read the current weights (none frozen into the graph).
+    for _ in range(2):
+        agent.update(filled_buffer().sample(32, [np.random.default_rng(1)], 0.8, "final"))
+    batch = agent.to_tensors(filled_buffer().sample(32, [np.random.default_rng(2)], 0.8, "final"))
+    compiled, eager = agent.compute_losses(batch), agent.losses(batch)
+    for c, e in zip(compiled[:3], eager[:3], strict=True):
+        torch.testing.assert_close(c, e, rtol=1e-4, atol=1e-5)
 
 
 def test_normalizer_clips_raw_values_floors_the_std_and_clips_its_output():
@@ -309,10 +316,10 @@ def test_unstable_segments_leave_the_graph_unchanged():
     ag = np.tile(og.make_config(3), (11, 1))
     ag[-2] = og.make_config(3, close=[(0, 1)])  # the final config changed within the last 3 steps
     seg = gh.Segment(np.zeros((11, 55), np.float32), ag, og.make_config(3), np.zeros((10, 4)), True, stable=False)
-    learner.learn_from([seg])
+    learner.learn_from([[seg]])
     assert learner.graph.n_nodes == 0 and learner.buffer.size == 1
     stable = gh.Segment(seg.obs, np.tile(og.make_config(3, close=[(0, 1)]), (11, 1)), seg.g, seg.actions, False, True)
-    learner.learn_from([stable])
+    learner.learn_from([[stable]])
     assert learner.graph.n_nodes == 3
 
 
