@@ -198,8 +198,7 @@ def test_per_worker_counts_are_summed_in_the_logs(tmp_path):
     (row,) = rows_of(tmp_path)
     assert int(row["segments"]) == 2 * 2 * 4 and int(row["env_steps"]) == 2 * 2 * 4 * 10  # both workers'
     assert int(row["goals"]) >= 2 * 2  # at least one goal per cycle and worker
-    social = float(row["social_share"]) * 4  # a share of both workers' 4 cycles
-    assert abs(social - round(social)) < 1e-9 and "2 worker(s)" in proc.stdout
+    assert "2 worker(s)" in proc.stdout
 
 
 def test_evaluation_goals_are_split_between_the_workers_of_a_process():
