@@ -76,6 +76,13 @@ def semantic_config(positions: np.ndarray) -> np.ndarray:
     return np.where(pred, np.float32(1.0), np.float32(-1.0))
 
 
+def goal_reached(achieved_goal, desired_goal) -> np.ndarray:
+    """Success, written once for the env and every learner (its reward, HER's relabelled reward, a
+    segment's success): the achieved config equals the goal on every predicate. Bool, batched over
+    leading axes; configs as +-1 values of any numeric dtype."""
+    return np.all(np.asarray(achieved_goal) == np.asarray(desired_goal), axis=-1)
+
+
 def euler_from_mat(mat: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Euler angles (roll, pitch, yaw) of row-major rotation matrices (..., 9), in gym-robotics'
     `rotations.mat2euler` convention (SPEC §3): rotating axes x, then y, then z, so that
@@ -174,8 +181,8 @@ class FetchManipulateEnv(gym.Env):
         return self._get_obs()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Sparse reward, 1.0 iff the configs are equal; vectorised over leading batch axes."""
-        return np.all(np.asarray(achieved_goal) == np.asarray(desired_goal), axis=-1).astype(np.float32)
+        """Sparse reward, 1.0 iff the goal is reached (goal_reached); vectorised over leading batch axes."""
+        return goal_reached(achieved_goal, desired_goal).astype(np.float32)
 
     # ------------------------------------------------------------------------------------------
     # Gymnasium API
@@ -218,7 +225,7 @@ class FetchManipulateEnv(gym.Env):
         mujoco.mj_step(self.model, self.data, nstep=N_SUBSTEPS)
 
         obs = self._get_obs()
-        reward = float((obs["achieved_goal"] == self.goal).all())
+        reward = float(self.compute_reward(obs["achieved_goal"], self.goal))
         if self.render_mode == "human":
             self.render()
         return obs, reward, False, False, {"is_success": reward}
