@@ -1074,22 +1074,18 @@ class GoalSampler:
                 yield Request(beyond, deterministic=False)
 
     def autotelic_cycle(self, w: Worker):
-        """Program, Algorithm 1's autotelic branch (SPEC §6): reset, draw a goal, pursue it along a
-        sampled path; until the cycle's segments are spent."""
+        """Program, Algorithm 1's autotelic branch (SPEC §6): reset, a goal uniform over the agent's nodes
+        (G_s.sample_node; before any exists, a uniform random +-1 vector), pursued along a sampled path;
+        until the cycle's segments are spent."""
         while w.left > 0:
             w.env.reset()
-            goal = self.autotelic_goal(w)
+            goal = self.learner.graph.sample_node(w.rng)
+            if goal is None:
+                goal = int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
             reached = yield from pursue(self.learner, w, goal, explore=True, deterministic=False)
             self.goals += 1
             self.stats["autotelic_goals"] += 1
             self.stats["autotelic_reached"] += reached
-
-    def autotelic_goal(self, w: Worker) -> int:
-        """G_s.sample_node(): uniform over the agent's nodes; before any exists, a uniform random +-1 vector."""
-        node = self.learner.graph.sample_node(w.rng)
-        if node is None:
-            return int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
-        return node
 
     def propose(self, kind: str, goal: int):
         name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
