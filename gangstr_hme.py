@@ -9,19 +9,19 @@ partner who sometimes proposes a goal at the agent's frontier and a goal just be
     python gangstr_hme.py --sp-ratio 0.2                  # the paper's SP-20%, 5 blocks
     python gangstr_hme.py --sp-ratio 0 --n-blocks 3       # pure autotelic GANGSTR, 3 blocks
 
-The paper's pseudo-code (appendix, Algorithm 1: autotelic, Algorithm 2: social), line by line:
-    initialize Π, G_s, PE, B, B_i           Learner (SAC, SemanticGraph, ReplayBuffer), GoalSampler
-    loop                                    train_loop: one cycle after another (run_cycle)
-      Alg. 2  g ← SP.propose_frontier(G_s)   SocialPartner.frontier_goal, in GoalSampler.social_cycle
+The paper's pseudo-code (appendix; Algorithm 1: autotelic, Algorithm 2: social), line by line:
+    initialize Π, G_s, PE, B, B_i          Run: Learner (SAC, SemanticGraph, ReplayBuffer), GoalSampler
+    loop                                   train_loop, one_cycle: run_cycle, then learn, then update
+      Alg. 2: g ← SP.propose_frontier(G_s)    SocialPartner.frontier_goal, in GoalSampler.social_cycle
               g_b ← SP.propose_beyond(G_s, g) SocialPartner.beyond_goal, in GoalSampler.beyond_goals
-              B_i.store(g, g_b)              GoalSampler.internalize
-      Alg. 1  (g, g_b) ← B_i.sample()        GoalSampler.rehearsal_cycle
-              g ← G_s.sample_node()          GoalSampler.autotelic_cycle
-      path ← PE.sample_path(g, G_s)          sample_path (the safest path, or one of the k shortest)
-      trajectory ← E.rollout(g_i)            follow_path asks for one segment per sub-goal; drive steps
-                                             every worker's segment together (run_segments)
-      G_s.update, PE.update, B.update        Learner.learn_from, once per cycle (SPEC §5's schedule)
-      Π.update(B)                            Learner.train: SAC.update on HER batches
+              B_i.store(g, g_b)               GoalSampler.internalize
+      Alg. 1: (g, g_b) ← B_i.sample()         GoalSampler.rehearsal_cycle
+              g ← G_s.sample_node()           GoalSampler.autotelic_cycle
+      path ← PE.sample_path(g, G_s)        sample_path: the safest path, or one of the k shortest
+      trajectory ← E.rollout(g_i)          follow_path yields one Request per sub-goal; drive runs
+                                           every worker's segment together (run_segments)
+      G_s.update, PE.update, B.update      Learner.learn_from, once per cycle (SPEC §5's schedule)
+      Π.update(B)                          Learner.train: SAC.update on HER batches
 
 Read top to bottom: Args, the networks (SPEC §5), normalizer and HER replay, SAC, the semantic graph
 and its path estimator (SPEC §6), rollouts, the goal sampler (HME, SPEC §7), learning and evaluation
@@ -69,8 +69,8 @@ import oracle_graph as og
 
 @dataclass
 class Args:
-    exp_name: str = "gangstr_hme"
-    """name of this experiment (the run folder is runs/{exp_name}__{seed}__{time})"""
+    exp_name: str = Path(__file__).stem
+    """name of this experiment, by default the script's (the run folder is runs/{exp_name}__{seed}__{time})"""
     seed: int = 0
     """seed of numpy, torch and the environment"""
     n_blocks: int = 5
@@ -894,89 +894,78 @@ def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
 
 
 # ------------------------------------------------------------------------------------------------
-# The goal sampler: HME, the social partner and internalization (SPEC §7; paper Sections 3.1, 3.4)
+# Goal samplers: the hooks the rest of the file calls, and the autotelic cycle they share (SPEC §6)
 # ------------------------------------------------------------------------------------------------
-STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
-
-
-def check_sampler_args(a: Args) -> str | None:
-    """The goal sampler's options (HME, SPEC §7): the first bad value, described, or None."""
-    if a.strategy not in STRATEGIES:
-        return f"--strategy must be one of {', '.join(STRATEGIES)}, got {a.strategy!r}"
-    for name in ("sp_ratio", "internalization_prob"):
-        if not 0.0 <= getattr(a, name) <= 1.0:
-            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
-    return None
-
-
-class SocialPartner:
-    """Knows every config and which ones are semantically adjacent (the oracle graph, SPEC §4), and
-    sees the agent's semantic graph. It proposes a frontier goal (a known config from which the agent
-    has not yet tried some adjacent config) and then a goal just beyond it."""
-
-    def __init__(self, n_blocks: int):
-        self.oracle = og.OracleGraph(n_blocks)
-        heads = np.repeat(np.arange(self.oracle.n_nodes), np.diff(self.oracle.indptr))
-        self.edge_heads = self.oracle.masks[heads]  # every oracle edge, as (head, tail) masks
-        self.edge_tails = self.oracle.masks[self.oracle.indices]
-        self.dim = og.config_dim(n_blocks)
-
-    def _untried(self, graph: SemanticGraph) -> np.ndarray:
-        """Oracle edges whose head is an agent node but that the agent graph lacks."""
-        keys = (self.edge_heads << self.dim) | self.edge_tails
-        known = np.isin(self.edge_heads, np.asarray(graph.masks, dtype=np.int64))
-        return known & ~np.isin(keys, graph.edge_keys())
-
-    def stepping_stones(self, graph: SemanticGraph) -> np.ndarray:
-        """Agent nodes that are oracle nodes with an oracle neighbour the agent has no edge to."""
-        return np.unique(self.edge_heads[self._untried(graph)])
-
-    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator, elsewhere: bool = False):
-        """Uniform among the stepping stones reachable in the agent graph from `current` (included,
-        unless `elsewhere`: a goal the agent must move to)."""
-        stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
-        stones = stones[stones != current] if elsewhere else stones
-        return int(stones[rng.integers(len(stones))]) if len(stones) else None
-
-    def beyond_goal(self, graph: SemanticGraph, config: int, rng: np.random.Generator) -> int | None:
-        """Uniform among the oracle neighbours c' of `config` with no agent edge config -> c'."""
-        i = int(self.oracle.index(og.from_mask(config, self.oracle.n_blocks)))
-        if i < 0:
-            return None
-        tails = self.oracle.masks[self.oracle.neighbour_indices(i)]
-        keys = (np.int64(config) << self.dim) | tails
-        beyond = tails[~np.isin(keys, graph.edge_keys())]
-        return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
-
-
-def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """The internalization buffer is a set of distinct (frontier, beyond) pairs (SPEC §7), kept as a
-    list in first-stored order so that a seeded draw picks the same pair on every worker: the kept
-    pairs, then those of `new` (every worker's, in global worker order) not already in."""
-    return list(dict.fromkeys([*kept, *new]))
-
-
-class GoalSampler:
-    """HME (SPEC §7): each cycle is social with probability sp_ratio (the paper's Algorithm 2); otherwise
-    it rehearses a failed social proposal with probability internalization_prob, if there is one
-    (Algorithm 1's first branch), else it is autotelic (its second).
-
-    A goal sampler is this section and its Args group; the rest of the file uses only these hooks:
-      check_sampler_args(args)       the first bad value of the sampler's options, described, or None
-      GoalSampler(args, learner, workers)
-      cycle(w)                       worker w's cycle program: yields Requests until w.left is spent
-      after_cycle()                  after every worker's cycle: merge what workers share (SPEC §11)
-      after_update(batch, target)    after each SAC update, its batch and TD targets: a dict to log
-      epoch_stats()                  the sampler's progress.csv columns for this epoch
-      stats, goals                   this epoch's counts (cleared each epoch); goals pursued so far
-      state_dict(), load_state_dict(s)   what checkpoints keep of it
-    """
+class Sampler:
+    """A goal sampler decides what every cycle does; the rest of the file uses only these hooks:
+      cycle(w)                        worker w's cycle program: yields Requests until w.left is spent
+      after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
+      after_update(batch, target)     after each SAC update, its batch and TD targets: a dict to log
+      epoch_stats()                   its progress.csv columns for this epoch
+      state_dict(), load_state_dict(s)    what checkpoints keep of it
+      stats, goals                    this epoch's counts (cleared each epoch); goals pursued so far
+    and check_sampler_args(args), a function: the first bad value of its options, described, or None.
+    This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic, goals uniform
+    over the agent's nodes; a sampler (the section after this one) overrides what it changes."""
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
+        self.stats, self.goals = collections.Counter(), 0
+
+    def cycle(self, w: Worker):
+        self.stats["cycles"] += 1
+        yield from self.autotelic_cycle(w)
+
+    def autotelic_cycle(self, w: Worker):
+        """Program, Algorithm 1's autotelic branch (SPEC §6): reset, a goal (autotelic_goal) pursued along
+        a sampled path; until the cycle's segments are spent."""
+        while w.left > 0:
+            w.env.reset()
+            goal = self.autotelic_goal(w)
+            reached = yield from pursue(self.learner, w, goal, explore=True, deterministic=False)
+            self.goal_outcome(w, goal, reached)
+
+    def autotelic_goal(self, w: Worker) -> int:
+        """G_s.sample_node(): uniform over the agent's nodes; before any exists, a uniform random +-1 vector."""
+        node = self.learner.graph.sample_node(w.rng)
+        if node is None:
+            return int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
+        return node
+
+    def goal_outcome(self, w: Worker, goal: int, reached: bool):
+        self.goals += 1
+        self.stats["autotelic_goals"] += 1
+        self.stats["autotelic_reached"] += reached
+
+    def after_cycle(self):
+        pass
+
+    def after_update(self, batch: dict, target: torch.Tensor) -> dict:
+        return {}
+
+    def epoch_stats(self) -> dict:
+        st = summed(self.stats, ["autotelic_goals", "autotelic_reached"])
+        return dict(autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]))
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, s: dict):
+        pass
+
+
+# ------------------------------------------------------------------------------------------------
+# The goal sampler: HME, the social partner and internalization (SPEC §7; paper Sections 3.1, 3.4)
+# ------------------------------------------------------------------------------------------------
+class GoalSampler(Sampler):
+    """HME (SPEC §7): each cycle is social with probability sp_ratio (the paper's Algorithm 2); otherwise
+    it rehearses a failed social proposal with probability internalization_prob, if there is one
+    (Algorithm 1's first branch), else it is autotelic (its second, Sampler.autotelic_cycle)."""
+
+    def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
+        super().__init__(args, learner, workers)
         self.sp = SocialPartner(args.n_blocks)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
-        self.stats, self.goals = collections.Counter(), 0
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
 
@@ -1073,20 +1062,6 @@ class GoalSampler:
             if arrived and w.left > 0:
                 yield Request(beyond, deterministic=False)
 
-    def autotelic_cycle(self, w: Worker):
-        """Program, Algorithm 1's autotelic branch (SPEC §6): reset, a goal uniform over the agent's nodes
-        (G_s.sample_node; before any exists, a uniform random +-1 vector), pursued along a sampled path;
-        until the cycle's segments are spent."""
-        while w.left > 0:
-            w.env.reset()
-            goal = self.learner.graph.sample_node(w.rng)
-            if goal is None:
-                goal = int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
-            reached = yield from pursue(self.learner, w, goal, explore=True, deterministic=False)
-            self.goals += 1
-            self.stats["autotelic_goals"] += 1
-            self.stats["autotelic_reached"] += reached
-
     def propose(self, kind: str, goal: int):
         name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
         self.stats[f"sp_{kind}_{name or 'other'}"] += 1
@@ -1100,19 +1075,14 @@ class GoalSampler:
         for w in self.workers:
             w.new_pairs = []
 
-    def after_update(self, batch: dict, target: torch.Tensor) -> dict:
-        return {}  # HME learns nothing from SAC's updates
-
     def epoch_stats(self) -> dict:
-        """Share of social and rehearsal cycles, stepping stones left, the number of distinct internalized
-        pairs, and the partner's proposals per class (frontier and beyond); counts of every worker."""
+        """Besides autotelic success: the share of social and rehearsal cycles, stepping stones left, the
+        number of distinct internalized pairs, the partner's proposals per class (frontier and beyond)."""
         names = [*og.evaluation_classes(self.args.n_blocks), "other"]
         proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
-        st = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", "autotelic_goals",
-                                 "autotelic_reached", *proposals])  # fmt: skip
+        st = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *proposals])
         cycles = max(1, st["cycles"])
-        return dict(
-            autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]),
+        return super().epoch_stats() | dict(
             social_share=st["social_cycles"] / cycles,
             rehearsal_share=st["rehearsal_cycles"] / cycles,
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
@@ -1125,6 +1095,66 @@ class GoalSampler:
 
     def load_state_dict(self, s: dict):
         self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
+
+
+STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
+
+
+def check_sampler_args(a: Args) -> str | None:
+    """The goal sampler's options (HME, SPEC §7): the first bad value, described, or None."""
+    if a.strategy not in STRATEGIES:
+        return f"--strategy must be one of {', '.join(STRATEGIES)}, got {a.strategy!r}"
+    for name in ("sp_ratio", "internalization_prob"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
+    return None
+
+
+class SocialPartner:
+    """Knows every config and which ones are semantically adjacent (the oracle graph, SPEC §4), and
+    sees the agent's semantic graph. It proposes a frontier goal (a known config from which the agent
+    has not yet tried some adjacent config) and then a goal just beyond it."""
+
+    def __init__(self, n_blocks: int):
+        self.oracle = og.OracleGraph(n_blocks)
+        heads = np.repeat(np.arange(self.oracle.n_nodes), np.diff(self.oracle.indptr))
+        self.edge_heads = self.oracle.masks[heads]  # every oracle edge, as (head, tail) masks
+        self.edge_tails = self.oracle.masks[self.oracle.indices]
+        self.dim = og.config_dim(n_blocks)
+
+    def _untried(self, graph: SemanticGraph) -> np.ndarray:
+        """Oracle edges whose head is an agent node but that the agent graph lacks."""
+        keys = (self.edge_heads << self.dim) | self.edge_tails
+        known = np.isin(self.edge_heads, np.asarray(graph.masks, dtype=np.int64))
+        return known & ~np.isin(keys, graph.edge_keys())
+
+    def stepping_stones(self, graph: SemanticGraph) -> np.ndarray:
+        """Agent nodes that are oracle nodes with an oracle neighbour the agent has no edge to."""
+        return np.unique(self.edge_heads[self._untried(graph)])
+
+    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator, elsewhere: bool = False):
+        """Uniform among the stepping stones reachable in the agent graph from `current` (included,
+        unless `elsewhere`: a goal the agent must move to)."""
+        stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
+        stones = stones[stones != current] if elsewhere else stones
+        return int(stones[rng.integers(len(stones))]) if len(stones) else None
+
+    def beyond_goal(self, graph: SemanticGraph, config: int, rng: np.random.Generator) -> int | None:
+        """Uniform among the oracle neighbours c' of `config` with no agent edge config -> c'."""
+        i = int(self.oracle.index(og.from_mask(config, self.oracle.n_blocks)))
+        if i < 0:
+            return None
+        tails = self.oracle.masks[self.oracle.neighbour_indices(i)]
+        keys = (np.int64(config) << self.dim) | tails
+        beyond = tails[~np.isin(keys, graph.edge_keys())]
+        return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
+
+
+def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The internalization buffer is a set of distinct (frontier, beyond) pairs (SPEC §7), kept as a
+    list in first-stored order so that a seeded draw picks the same pair on every worker: the kept
+    pairs, then those of `new` (every worker's, in global worker order) not already in."""
+    return list(dict.fromkeys([*kept, *new]))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -9,6 +9,10 @@ against gangstr_hme.py shows only the goal sampler, its options and its logging.
 
     python vds_baseline.py                             # 5 blocks
     python vds_baseline.py --n-blocks 3 --vds-temperature 0.5
+
+The paper's Algorithm 1 maps to the functions as in gangstr_hme.py's docstring, without its social
+branch (Algorithm 2) and rehearsal: the goal g is chosen by GoalSampler.autotelic_goal (instead of
+G_s.sample_node), and the heads learn from each SAC update's TD targets in GoalSampler.after_update.
 """
 
 from __future__ import annotations
@@ -51,18 +55,20 @@ import oracle_graph as og
 
 @dataclass
 class Args:
-    exp_name: str = "vds_baseline"
-    """name of this experiment (the run folder is runs/{exp_name}__{seed}__{time})"""
+    exp_name: str = Path(__file__).stem
+    """name of this experiment, by default the script's (the run folder is runs/{exp_name}__{seed}__{time})"""
     seed: int = 0
     """seed of numpy, torch and the environment"""
     n_blocks: int = 5
     """number of blocks (2-5; the paper uses 5)"""
+    # --- the goal sampler: value disagreement (SPEC §8) ---
     vds_heads: int = 3
     """extra Q heads whose disagreement scores goals"""
     vds_candidates: int = 1000
     """candidate goals drawn from the agent's graph before each goal"""
     vds_temperature: float = 1.0
     """softmax temperature on the disagreement scores (lower: greedier)"""
+    # --- schedule (SPEC §5) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
     n_cycles: int = 50
@@ -71,10 +77,11 @@ class Args:
     """40-step segments collected per cycle"""
     n_updates: int = 30
     """SAC updates per cycle"""
-    batch_size: int = 256
-    """transitions per SAC update"""
     segment_len: int = 40
     """environment steps per segment (one sub-goal)"""
+    # --- SAC + HER (SPEC §5) ---
+    batch_size: int = 256
+    """transitions per SAC update"""
     buffer_size: int = 1_000_000
     """replay capacity in transitions (FIFO)"""
     her_strategy: str = "final"
@@ -93,6 +100,7 @@ class Args:
     """actor learning rate (Adam)"""
     lr_critic: float = 1e-3
     """critic learning rate (Adam)"""
+    # --- the semantic graph and its paths (SPEC §6) ---
     sr_ema: float = 0.01
     """EMA rate of an edge's success-rate estimate"""
     sr_prior: float = 0.5
@@ -105,16 +113,26 @@ class Args:
     """probability of following one of the k shortest paths instead of the safest (training only)"""
     max_path_len: int = 10
     """longest path in configs, start included (2 = no decomposition, the 'NG' ablation)"""
+    # --- evaluation (SPEC §9) ---
     eval_goals_per_class: int = 24
     """evaluation goals per class"""
     max_eval_subgoals: int = 9
     """sub-goal segments an evaluation episode may use"""
+    eval_only: bool = False
+    """evaluate the --checkpoint (SR per class, printed and saved beside it) and exit; no training"""
+    checkpoint: str = ""
+    """checkpoint to evaluate with --eval-only"""
     plan_on: str = "agent"
     """with --eval-only: plan sub-goals on the 'agent' graph (SPEC §9) or the 'oracle' graph (its shortest paths)"""
+    capture_video: bool = False
+    """with --eval-only: write an mp4 per class of its first --video-episodes evaluation episodes"""
+    video_episodes: int = 3
+    """evaluation episodes per class filmed by --capture-video"""
+    # --- run and hardware (SPEC §10, §11) ---
     num_envs: int = 1
     """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0
-    """torch CPU threads (0: all cores; one while several envs step in threads, see Learner.drive)"""
+    """torch CPU threads (0: all cores; one while several envs step in threads, see drive)"""
     cuda: bool = False
     """train on the GPU if one is available"""
     compile: bool = False
@@ -127,243 +145,15 @@ class Args:
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
-    eval_only: bool = False
-    """evaluate the --checkpoint (SR per class, printed and saved beside it) and exit; no training"""
-    checkpoint: str = ""
-    """checkpoint to evaluate with --eval-only"""
-    capture_video: bool = False
-    """with --eval-only: write an mp4 per class of its first --video-episodes evaluation episodes"""
-    video_episodes: int = 3
-    """evaluation episodes per class filmed by --capture-video"""
     runs_dir: str = "runs"
     """folder holding the run folders"""
-
-
-# ------------------------------------------------------------------------------------------------
-# Command line: argparse built from Args, each field's docstring becoming its --help line
-# ------------------------------------------------------------------------------------------------
-def _field_docs(cls) -> dict[str, str]:
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {
-        a.target.id: b.value.value
-        for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
-    }
-
-
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str):
-        """Bad input: one line naming the value, exit code 2 (not argparse's screen of usage)."""
-        self.exit(2, f"{self.prog}: error: {message} (--help lists every option)\n")
-
-
-def make_parser(with_defaults: bool = True) -> argparse.ArgumentParser:
-    """argparse built from Args, each field's docstring and default its --help line. Without defaults,
-    parsing yields only the flags the user gave (see given_flags)."""
-    parser = OneLineParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    if not with_defaults:
-        parser.argument_default = argparse.SUPPRESS
-    docs = {k: v.replace("%", "%%") for k, v in _field_docs(Args).items()}  # argparse formats help with %
-    for f in dataclasses.fields(Args):
-        flag, default = "--" + f.name.replace("_", "-"), f.default if with_defaults else argparse.SUPPRESS
-        text = docs[f.name] + (f" (default: {f.default!r})" if with_defaults else "")
-        if f.type in ("bool", bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=text)
-        else:
-            kind = {"int": int, "float": float, "str": str}[f.type]
-            parser.add_argument(flag, type=kind, default=default, help=text, metavar=kind.__name__.upper())
-    return parser
-
-
-def parse_args(argv=None) -> Args:
-    parser = make_parser()
-    args = Args(**vars(parser.parse_args(argv)))
-    problem = check_args(args)
-    if problem:
-        parser.error(problem)  # exit code 2, the message names the value
-    return args
-
-
-def given_flags(argv=None) -> set[str]:
-    """The Args fields the command line sets explicitly (whatever their value)."""
-    return set(vars(make_parser(with_defaults=False).parse_args(argv)))
-
-
-def check_args(a: Args) -> str | None:
-    """The first bad value in a, described, or None."""
-    for f in dataclasses.fields(Args):
-        value = getattr(a, f.name)
-        if f.type in ("float", float) and not math.isfinite(value):
-            return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
-    at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
-                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals",
-                  "init_prior_count", "num_envs")  # fmt: skip
-    for name in at_least_1:
-        if getattr(a, name) < 1:
-            return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes"):
-        if getattr(a, name) < 0:
-            return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
-    for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
-        if not 0.0 <= getattr(a, name) <= 1.0:
-            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
-    if not 0 <= a.seed < 2**32:
-        return f"--seed must be in [0, 2**32), got {a.seed}"
-    if a.alpha < 0:
-        return f"--alpha must be non-negative, got {a.alpha}"
-    for name in ("lr_actor", "lr_critic"):
-        if getattr(a, name) <= 0:
-            return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
-    if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
-        return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
-    if a.her_strategy not in ("final", "future"):
-        return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
-    if a.plan_on not in ("agent", "oracle"):
-        return f"--plan-on must be 'agent' or 'oracle', got {a.plan_on!r}"
-    if a.max_path_len < 2:
-        return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
-    if a.stable_steps > a.segment_len:
-        return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
-    if a.buffer_size < a.n_segments * a.segment_len:
-        return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
-    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
-    replay_bytes = a.num_envs * a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)  # each worker's
-    if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
-        return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "
-                "memory than this machine has")  # fmt: skip
-    if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
-        return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
-    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
-        return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
-    if a.cuda and not torch.cuda.is_available():
-        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
-    return check_run_control(a) or check_sampler_args(a)
-
-
-MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
-
-
-def check_run_control(a: Args) -> str | None:
-    """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
-    need."""
-    if a.resume and a.eval_only:
-        return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
-    if a.init_from and (a.resume or a.eval_only):
-        return (f"--init-from {a.init_from!r} starts a new run: not with --resume (which continues one) or "
-                "--eval-only (evaluate the file with --eval-only --checkpoint PATH)")  # fmt: skip
-    if a.resume and not os.path.isfile(a.resume):
-        return f"--resume: cannot read checkpoint {a.resume!r}"
-    if a.init_from and not os.path.isfile(a.init_from):
-        return f"--init-from: cannot read {a.init_from!r}"
-    if a.eval_only and not os.path.isfile(a.checkpoint):
-        return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
-    if a.checkpoint and not a.eval_only:
-        return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
-    if a.capture_video and not a.eval_only:
-        return "--capture-video films an --eval-only evaluation; add --eval-only --checkpoint PATH"
-    if a.plan_on != "agent" and not a.eval_only:
-        return f"--plan-on {a.plan_on!r} plans an --eval-only evaluation; add --eval-only --checkpoint PATH"
-    if not (a.resume or a.eval_only):
-        parent = Path(a.runs_dir).absolute()
-        while not parent.exists():
-            parent = parent.parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            return f"--runs-dir {a.runs_dir!r}: cannot create a run folder under {str(parent)!r}"
-    return None
-
-
-def check_sampler_args(a: Args) -> str | None:
-    """The goal sampler's options (VDS, SPEC §8)."""
-    if a.vds_heads < 2 or a.vds_candidates < 1:
-        return f"--vds-heads must be at least 2 and --vds-candidates at least 1, got {a.vds_heads}, {a.vds_candidates}"
-    if not a.vds_temperature > 0:
-        return f"--vds-temperature must be positive, got {a.vds_temperature}"
-    return None
-
-
-# ------------------------------------------------------------------------------------------------
-# Processes (SPEC §11): one by default; under torchrun, several, which hold the workers between them
-# ------------------------------------------------------------------------------------------------
-def init_workers(args: Args) -> torch.device:
-    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this process's device."""
-    cuda = args.cuda and torch.cuda.is_available()
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        if cuda:
-            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
-        dist.init_process_group("nccl" if cuda else "gloo")
-    return torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
-
-
-def rank() -> int:
-    return dist.get_rank() if dist.is_initialized() else 0
-
-
-def world() -> int:
-    return dist.get_world_size() if dist.is_initialized() else 1
-
-
-def _comm_device() -> torch.device:
-    return torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else torch.device("cpu")
-
-
-def all_sum(x: np.ndarray) -> np.ndarray:
-    """Element-wise sum over processes (float64)."""
-    if world() == 1:
-        return x
-    t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
-    dist.all_reduce(t)
-    return t.cpu().numpy()
-
-
-def gather_workers(local: np.ndarray) -> np.ndarray:
-    """(all workers, ...) float64 rows from this process's (num_envs, ...) rows, in global worker order: a
-    sum of zero-padded copies, which adds nothing but zeros to any value."""
-    if world() == 1:
-        return np.asarray(local, dtype=np.float64)
-    full = np.zeros((world() * len(local), *np.shape(local)[1:]))
-    full[rank() * len(local) : (rank() + 1) * len(local)] = local
-    return all_sum(full)
-
-
-def all_gather_rows(rows: np.ndarray) -> np.ndarray:
-    """Every process's int64 rows (any number each), concatenated in rank order, so in global worker order
-    when each process gives its workers' rows in order: the same in every process."""
-    rows = np.asarray(rows, dtype=np.int64)
-    if world() == 1:
-        return rows
-    dev = _comm_device()
-    counts = [torch.zeros(1, dtype=torch.int64, device=dev) for _ in range(world())]
-    dist.all_gather(counts, torch.tensor([len(rows)], device=dev))
-    counts = [int(c) for c in counts]
-    padded = torch.zeros((max(counts), *rows.shape[1:]), dtype=torch.int64, device=dev)
-    padded[: len(rows)] = torch.as_tensor(rows, device=dev)
-    parts = [torch.empty_like(padded) for _ in counts]
-    dist.all_gather(parts, padded)
-    return torch.cat([p[:c] for p, c in zip(parts, counts, strict=True)]).cpu().numpy()
-
-
-def broadcast_params(*modules: nn.Module):
-    """Every process starts from process 0's parameters."""
-    if world() > 1:
-        for t in (t for m in modules for t in m.state_dict().values()):
-            dist.broadcast(t, src=0)
-
-
-def sum_grads(params: list[torch.Tensor]):
-    """Gradients summed over processes, in one all-reduce (within a process, the losses already sum its
-    workers', see SAC.losses): the sum over all workers of SPEC §11."""
-    if world() > 1:
-        grads = [p.grad for p in params]
-        flat = torch.cat([g.reshape(-1) for g in grads])
-        dist.all_reduce(flat)
-        for g, synced in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
-            g.copy_(synced.view_as(g))
 
 
 # ------------------------------------------------------------------------------------------------
 # The GNN actor-critic (SPEC §5; paper appendix "Object-centered architecture")
 # ------------------------------------------------------------------------------------------------
 BODY, PER_BLOCK, MSG = 10, 15, 24  # body features, features per block, message size
+ACTOR_NODE_OUT, CRITIC_NODE_OUT = 147, 159  # the node nets' output widths, the authors' (SPEC §5)
 
 
 class MLP(nn.Module):
@@ -439,8 +229,8 @@ class Critic(nn.Module):
     def __init__(self, n_blocks: int):
         super().__init__()
         self.message = MLP(8, 256, MSG)  # edge input: [g - ag at close{i,j}, at i on j, pos i, pos j]
-        self.q_nodes = nn.ModuleList([MLP(4 + BODY + PER_BLOCK + MSG, 256, 159) for _ in range(2)])
-        self.q_heads = nn.ModuleList([MLP(159, 256, 1, out_relu=False) for _ in range(2)])
+        self.q_nodes = nn.ModuleList([MLP(4 + BODY + PER_BLOCK + MSG, 256, CRITIC_NODE_OUT) for _ in range(2)])
+        self.q_heads = nn.ModuleList([MLP(CRITIC_NODE_OUT, 256, 1, out_relu=False) for _ in range(2)])
         init_weights(self)
 
     def messages(self, gi: GraphIndex, blocks, gap) -> torch.Tensor:
@@ -461,10 +251,10 @@ class Critic(nn.Module):
 class Actor(nn.Module):
     def __init__(self, n_blocks: int):
         super().__init__()
-        self.node = MLP(BODY + PER_BLOCK + MSG, 256, 147)
+        self.node = MLP(BODY + PER_BLOCK + MSG, 256, ACTOR_NODE_OUT)
         # SPEC §5's head Linear(147, 256) -> ReLU, then its mean and log-std layers, Linear(256, 4) each,
         # stacked in one Linear(256, 8): one matmul for both, cheaper acting.
-        self.head = MLP(147, 256, 8, out_relu=False)
+        self.head = MLP(ACTOR_NODE_OUT, 256, 8, out_relu=False)
         init_weights(self)
         nn.init.xavier_uniform_(self.head.out.weight.data[:4])  # Xavier bounds of two (256 -> 4) layers
         nn.init.xavier_uniform_(self.head.out.weight.data[4:])
@@ -571,7 +361,7 @@ class ReplayBuffer:
             ag_next=ag_next.astype(np.float32),
             g=g.astype(np.float32),
             action=self.actions[w, ep, t],
-            reward=(ag_next == g).all(1).astype(np.float32),
+            reward=fetch5_env.goal_reached(ag_next, g).astype(np.float32),
             noise_next=noise[:, :4],  # for the next action in the critic's target
             noise_pi=noise[:, 4:],  # for the action the actor loss scores
         )
@@ -743,123 +533,7 @@ class SemanticGraph:
     def sample_node(self, rng: np.random.Generator) -> int | None:
         return self.masks[rng.integers(self.n_nodes)] if self.masks else None
 
-    # --- path planning ------------------------------------------------------------------------
-    def safest_path(self, start: int, goal: int, rng: np.random.Generator) -> list[int] | None:
-        """Path maximising the product of edge SRs: Dijkstra (binary heap, early exit) on -log SR.
-        Equally safe paths are equally likely (SPEC §6): a beginner's edges all sit at the prior, so
-        every path of the same length ties, and always taking the same one would repeat its mistakes."""
-        s, t = self.node_of.get(start), self.node_of.get(goal)
-        if s is None or t is None or s == t:
-            return None
-        cost = (-np.log(np.clip(self.sr, 1e-12, 1.0))).tolist()
-        dist, order, heap = [math.inf] * self.n_nodes, {}, [(0.0, s)]
-        dist[s] = 0.0
-        succ, succ_class = self.succ, self.succ_class
-        while heap:
-            d, u = heapq.heappop(heap)
-            if d > dist[u]:
-                continue  # a stale heap entry
-            order[u] = len(order)  # settled: dist[u] is final
-            if u == t:
-                return [self.masks[i] for i in self._sample_tight_path(s, t, dist, order, cost, rng)]
-            for v, c in zip(succ[u], succ_class[u]):  # noqa: B905 (equal lengths by construction; hot loop)
-                nd = d + cost[c]
-                if nd < dist[v]:
-                    dist[v] = nd
-                    heapq.heappush(heap, (nd, v))
-        return None
-
-    def _sample_tight_path(self, s: int, t: int, dist: list, order: dict, cost: list, rng) -> list[int]:
-        """One of the optimal s -> t paths of a finished Dijkstra, uniformly. An edge u -> v is on an
-        optimal path when u was settled before v and dist[u] + cost = dist[v] (up to 1e-9: costs are
-        float sums in different orders); all of them are settled when t is. Counting the optimal paths
-        into each node, then walking back from t choosing each predecessor in proportion to its count,
-        gives every optimal path the same chance. Only the nodes on optimal paths are visited."""
-        indptr, tails, classes = self._csr(1)
-        preds, todo = {}, [t]
-        while todo:  # the optimal-path DAG, backwards from t
-            v = todo.pop()
-            if v in preds or v == s:
-                continue
-            lo, hi = int(indptr[v]), int(indptr[v + 1])
-            preds[v] = [
-                u
-                for u, c in zip(tails[lo:hi].tolist(), classes[lo:hi].tolist(), strict=True)
-                if order.get(u, math.inf) < order[v] and abs(dist[u] + cost[c] - dist[v]) <= 1e-9
-            ]
-            todo += preds[v]
-        count = {s: 1}
-        for v in sorted(preds, key=order.__getitem__):  # settle order: predecessors first
-            count[v] = sum(count[u] for u in preds[v])
-        path = [t]
-        while path[-1] != s:
-            options = preds[path[-1]]
-            if len(options) > 1:
-                r = rng.random() * count[path[-1]]
-                for u in options:
-                    r -= count[u]
-                    if r < 0:
-                        break
-            else:
-                u = options[0]
-            path.append(u)
-        return path[::-1]
-
-    def k_shortest_paths(self, start: int, goal: int, k: int) -> list[list[int]]:
-        """Up to k shortest loopless paths in number of edges, of k different shapes (SPEC §6): Yen's
-        algorithm, each spur path found by A* guided by the exact hop count to the goal in the whole
-        graph (admissible when Yen removes nodes and edges, so each search stays close to the shortest
-        paths). A path with the sequence of SR classes of a kept one (a block permutation of it) stays
-        in Yen's list, which the next spurs need, but is not kept. Yen stops after YEN_PATHS_PER_SHAPE * k
-        paths: one shape can have dozens of block permutations, and each further path costs one search
-        per node of the previous one."""
-        s, t = self.node_of.get(start), self.node_of.get(goal)
-        if s is None or t is None or s == t or k < 1:
-            return []
-        hops = og.bfs_hops(*self._csr(1)[:2], t).tolist()  # hop count to t along predecessor lists
-        first = self._astar(s, t, hops, set(), set())
-        if first is None:
-            return []
-        found, candidates, seen = [first], [], {tuple(first)}
-        kept = {self._shape(first): first}  # shape -> its shortest path, in Yen's order
-        while len(kept) < k and len(found) < YEN_PATHS_PER_SHAPE * k:
-            last = found[-1]
-            for i in range(len(last) - 1):
-                root = last[: i + 1]
-                banned_edges = {(p[i], p[i + 1]) for p in found if len(p) > i + 1 and p[: i + 1] == root}
-                spur = self._astar(last[i], t, hops, set(root[:-1]), banned_edges)
-                if spur is not None and tuple(root[:-1] + spur) not in seen:
-                    seen.add(tuple(root[:-1] + spur))
-                    heapq.heappush(candidates, (len(root) + len(spur), root[:-1] + spur))
-            if not candidates:
-                break
-            found.append(heapq.heappop(candidates)[1])
-            kept.setdefault(self._shape(found[-1]), found[-1])
-        return [[self.masks[i] for i in p] for p in kept.values()]
-
-    def _shape(self, path: list[int]) -> tuple[int, ...]:
-        """The SR classes of a path's edges: equal for paths that are block permutations of each other."""
-        return tuple(self.succ_class[u][self.succ[u].index(v)] for u, v in zip(path, path[1:], strict=False))
-
-    def _astar(self, s: int, t: int, hops: list[int], banned_nodes: set, banned_edges: set) -> list[int] | None:
-        if hops[s] < 0:
-            return None
-        dist, prev, heap = {s: 0}, {s: -1}, [(hops[s], 0, s)]
-        while heap:
-            _, neg_d, u = heapq.heappop(heap)
-            if u == t:
-                return self._trace(prev, t)
-            if -neg_d > dist[u]:
-                continue
-            nd = 1 - neg_d
-            for v in self.succ[u]:
-                if hops[v] < 0 or v in banned_nodes or (u, v) in banned_edges or nd >= dist.get(v, math.inf):
-                    continue
-                dist[v], prev[v] = nd, u
-                heapq.heappush(heap, (nd + hops[v], -nd, v))  # ties: deepest first
-        return None
-
-    def _csr(self, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def csr(self, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Edges grouped by their tail (by=0: successor lists) or head (by=1: predecessor lists), as CSR:
         indptr, the other end of each edge, and its SR class."""
         if by not in self._cache:
@@ -874,7 +548,7 @@ class SemanticGraph:
         s = self.node_of.get(start)
         if s is None:
             return np.array([start], dtype=np.int64)
-        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self._csr(0)[:2], s) >= 0]
+        return np.asarray(self.masks, dtype=np.int64)[og.bfs_hops(*self.csr(0)[:2], s) >= 0]
 
     def edge_keys(self) -> np.ndarray:
         """Sorted int keys (mask_u << dim | mask_v) of the agent's edges, for set look-ups in numpy."""
@@ -883,27 +557,6 @@ class SemanticGraph:
             edges = np.array(self.edge_log, dtype=np.int64).reshape(-1, 3)
             self._cache["keys"] = np.sort((masks[edges[:, 0]] << self.dim) | masks[edges[:, 1]])
         return self._cache["keys"]
-
-    @staticmethod
-    def _trace(prev, t: int) -> list[int]:
-        """Walk the predecessor map (a list or a dict, -1 at the start) back from t."""
-        path = [t]
-        while prev[path[-1]] >= 0:
-            path.append(prev[path[-1]])
-        return path[::-1]
-
-    def plan(self, start: int, goal: int, rng: np.random.Generator, explore: bool) -> list[int]:
-        """Sub-goal path [start, ..., goal] (SPEC §6). Training (explore) follows one of the k shortest
-        paths with probability shortest_ratio, else the safest; without a path: [start, goal]. A path
-        longer than max_path_len keeps its start and its last max_path_len - 1 configs."""
-        if explore and rng.random() < self.args.shortest_ratio:
-            paths = self.k_shortest_paths(start, goal, self.args.k_shortest)
-            path = paths[rng.integers(len(paths))] if paths else None
-        else:
-            path = self.safest_path(start, goal, rng)
-        path = path or [start, goal]
-        cap = self.args.max_path_len
-        return path if len(path) <= cap else [path[0]] + path[-(cap - 1) :]
 
     def state_dict(self) -> dict:
         return dict(
@@ -927,44 +580,153 @@ def is_small_step(a: int, b: int, n: int) -> bool:
     return bool(og.is_small_step(og.from_mask(a, n), og.from_mask(b, n)))
 
 
-def oracle_planner(args: Args) -> SemanticGraph:
-    """The oracle graph (SPEC §4) as a semantic graph whose edges all share one SR, the prior: its safest
-    paths are then its shortest ones, drawn uniformly. For evaluation only (--plan-on oracle): it tells
-    the policy's skill apart from the agent graph's, and plans for an agent that has no graph (the paper's)."""
-    oracle = og.OracleGraph(args.n_blocks)
-    heads = np.repeat(np.arange(oracle.n_nodes), np.diff(oracle.indptr))
-    graph = SemanticGraph(args.n_blocks, args)
-    graph.load_state_dict(dict(
-        masks=torch.from_numpy(oracle.masks),
-        edges=torch.from_numpy(np.column_stack([heads, oracle.indices, np.zeros_like(heads)])),  # SR class 0
-        class_keys=torch.zeros((0, 2), dtype=torch.int64),
-        sr=torch.tensor([args.sr_prior], dtype=torch.float64),
-    ))  # fmt: skip
-    return graph
+# --- the path estimator (the paper's PE.sample_path; SPEC §6) -----------------------------------
+def sample_path(graph: SemanticGraph, start: int, goal: int, rng: np.random.Generator, explore: bool) -> list[int]:
+    """Sub-goal path [start, ..., goal] (SPEC §6). Training (explore) follows one of the k shortest
+    paths with probability shortest_ratio, else the safest; without a path: [start, goal]. A path
+    longer than max_path_len keeps its start and its last max_path_len - 1 configs."""
+    if explore and rng.random() < graph.args.shortest_ratio:
+        paths = k_shortest_paths(graph, start, goal, graph.args.k_shortest)
+        path = paths[rng.integers(len(paths))] if paths else None
+    else:
+        path = safest_path(graph, start, goal, rng)
+    path = path or [start, goal]
+    cap = graph.args.max_path_len
+    return path if len(path) <= cap else [path[0]] + path[-(cap - 1) :]
+
+
+def safest_path(graph: SemanticGraph, start: int, goal: int, rng: np.random.Generator) -> list[int] | None:
+    """Path maximising the product of edge SRs: Dijkstra (binary heap, early exit) on -log SR.
+    Equally safe paths are equally likely (SPEC §6): a beginner's edges all sit at the prior, so
+    every path of the same length ties, and always taking the same one would repeat its mistakes."""
+    s, t = graph.node_of.get(start), graph.node_of.get(goal)
+    if s is None or t is None or s == t:
+        return None
+    cost = (-np.log(np.clip(graph.sr, 1e-12, 1.0))).tolist()
+    dist, order, heap = [math.inf] * graph.n_nodes, {}, [(0.0, s)]
+    dist[s] = 0.0
+    succ, succ_class = graph.succ, graph.succ_class
+    while heap:
+        d, u = heapq.heappop(heap)
+        if d > dist[u]:
+            continue  # a stale heap entry
+        order[u] = len(order)  # settled: dist[u] is final
+        if u == t:
+            return [graph.masks[i] for i in _sample_tight_path(graph, s, t, dist, order, cost, rng)]
+        for v, c in zip(succ[u], succ_class[u]):  # noqa: B905 (equal lengths by construction; hot loop)
+            nd = d + cost[c]
+            if nd < dist[v]:
+                dist[v] = nd
+                heapq.heappush(heap, (nd, v))
+    return None
+
+
+def _sample_tight_path(graph: SemanticGraph, s: int, t: int, dist: list, order: dict, cost: list, rng) -> list[int]:
+    """One of the optimal s -> t paths of a finished Dijkstra, uniformly. An edge u -> v is on an
+    optimal path when u was settled before v and dist[u] + cost = dist[v] (up to 1e-9: costs are
+    float sums in different orders); all of them are settled when t is. Counting the optimal paths
+    into each node, then walking back from t choosing each predecessor in proportion to its count,
+    gives every optimal path the same chance. Only the nodes on optimal paths are visited."""
+    indptr, tails, classes = graph.csr(1)
+    preds, todo = {}, [t]
+    while todo:  # the optimal-path DAG, backwards from t
+        v = todo.pop()
+        if v in preds or v == s:
+            continue
+        lo, hi = int(indptr[v]), int(indptr[v + 1])
+        preds[v] = [
+            u
+            for u, c in zip(tails[lo:hi].tolist(), classes[lo:hi].tolist(), strict=True)
+            if order.get(u, math.inf) < order[v] and abs(dist[u] + cost[c] - dist[v]) <= 1e-9
+        ]
+        todo += preds[v]
+    count = {s: 1}
+    for v in sorted(preds, key=order.__getitem__):  # settle order: predecessors first
+        count[v] = sum(count[u] for u in preds[v])
+    path = [t]
+    while path[-1] != s:
+        options = preds[path[-1]]
+        if len(options) > 1:
+            r = rng.random() * count[path[-1]]
+            for u in options:
+                r -= count[u]
+                if r < 0:
+                    break
+        else:
+            u = options[0]
+        path.append(u)
+    return path[::-1]
+
+
+def k_shortest_paths(graph: SemanticGraph, start: int, goal: int, k: int) -> list[list[int]]:
+    """Up to k shortest loopless paths in number of edges, of k different shapes (SPEC §6): Yen's
+    algorithm, each spur path found by A* guided by the exact hop count to the goal in the whole
+    graph (admissible when Yen removes nodes and edges, so each search stays close to the shortest
+    paths). A path with the sequence of SR classes of a kept one (a block permutation of it) stays
+    in Yen's list, which the next spurs need, but is not kept. Yen stops after YEN_PATHS_PER_SHAPE * k
+    paths: one shape can have dozens of block permutations, and each further path costs one search
+    per node of the previous one."""
+    s, t = graph.node_of.get(start), graph.node_of.get(goal)
+    if s is None or t is None or s == t or k < 1:
+        return []
+    hops = og.bfs_hops(*graph.csr(1)[:2], t).tolist()  # hop count to t along predecessor lists
+    first = _astar(graph, s, t, hops, set(), set())
+    if first is None:
+        return []
+    found, candidates, seen = [first], [], {tuple(first)}
+    kept = {_shape(graph, first): first}  # shape -> its shortest path, in Yen's order
+    while len(kept) < k and len(found) < YEN_PATHS_PER_SHAPE * k:
+        last = found[-1]
+        for i in range(len(last) - 1):
+            root = last[: i + 1]
+            banned_edges = {(p[i], p[i + 1]) for p in found if len(p) > i + 1 and p[: i + 1] == root}
+            spur = _astar(graph, last[i], t, hops, set(root[:-1]), banned_edges)
+            if spur is not None and tuple(root[:-1] + spur) not in seen:
+                seen.add(tuple(root[:-1] + spur))
+                heapq.heappush(candidates, (len(root) + len(spur), root[:-1] + spur))
+        if not candidates:
+            break
+        found.append(heapq.heappop(candidates)[1])
+        kept.setdefault(_shape(graph, found[-1]), found[-1])
+    return [[graph.masks[i] for i in p] for p in kept.values()]
+
+
+def _shape(graph: SemanticGraph, path: list[int]) -> tuple[int, ...]:
+    """The SR classes of a path's edges: equal for paths that are block permutations of each other."""
+    return tuple(graph.succ_class[u][graph.succ[u].index(v)] for u, v in zip(path, path[1:], strict=False))
+
+
+def _astar(
+    graph: SemanticGraph, s: int, t: int, hops: list[int], banned_nodes: set, banned_edges: set
+) -> list[int] | None:
+    if hops[s] < 0:
+        return None
+    dist, prev, heap = {s: 0}, {s: -1}, [(hops[s], 0, s)]
+    while heap:
+        _, neg_d, u = heapq.heappop(heap)
+        if u == t:
+            return _trace(prev, t)
+        if -neg_d > dist[u]:
+            continue
+        nd = 1 - neg_d
+        for v in graph.succ[u]:
+            if hops[v] < 0 or v in banned_nodes or (u, v) in banned_edges or nd >= dist.get(v, math.inf):
+                continue
+            dist[v], prev[v] = nd, u
+            heapq.heappush(heap, (nd + hops[v], -nd, v))  # ties: deepest first
+    return None
+
+
+def _trace(prev, t: int) -> list[int]:
+    """Walk the predecessor map (a list or a dict, -1 at the start) back from t."""
+    path = [t]
+    while prev[path[-1]] >= 0:
+        path.append(prev[path[-1]])
+    return path[::-1]
 
 
 # ------------------------------------------------------------------------------------------------
-# The goal sampler: value disagreement (SPEC §8; paper Section 4.2)
-# ------------------------------------------------------------------------------------------------
-class VDSEnsemble(nn.Module):
-    """Extra Q heads on the critic's node readout (its first Q head's node net, summed over nodes)."""
-
-    def __init__(self, n_heads: int):
-        super().__init__()
-        self.heads = nn.ModuleList([MLP(159, 256, 1, out_relu=False) for _ in range(n_heads)])
-        init_weights(self)
-
-    def forward(self, readout: torch.Tensor) -> torch.Tensor:
-        return torch.stack([h(readout).squeeze(-1) for h in self.heads])  # (heads, B)
-
-
-def softmax(x: np.ndarray) -> np.ndarray:
-    e = np.exp(x - x.max())
-    return e / e.sum()
-
-
-# ------------------------------------------------------------------------------------------------
-# Workers and rollouts: segments, paths and cycle programs (SPEC §5, §6, §11)
+# Rollouts: workers, segments, and the driver that steps every worker together (SPEC §5, §6, §11)
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class Segment:
@@ -972,7 +734,7 @@ class Segment:
     ag: np.ndarray  # (T + 1, goal_dim) achieved configs
     g: np.ndarray  # (goal_dim,) the sub-goal
     actions: np.ndarray  # (T, 4)
-    success: bool  # ended exactly on g
+    success: bool  # ended on g (fetch5_env.goal_reached)
     stable: bool  # the final config held over the last stable_steps steps
 
     @property
@@ -997,7 +759,8 @@ class Worker:
     """One of SPEC §11's workers: its own env, seed (seed + global worker index) and random stream, and
     the segments it may still run this cycle. A process holds --num-envs of them; under torchrun, process
     r holds workers r x num_envs ... r x num_envs + num_envs - 1. What the paper's workers share after
-    each sync (networks, normalizer, semantic graph, internalized pairs) belongs to the Learner."""
+    each sync (networks, normalizer, semantic graph, internalized pairs) is the Learner's and the
+    GoalSampler's."""
 
     def __init__(self, args: Args, index: int):
         self.index, seed = index, args.seed + index
@@ -1008,9 +771,13 @@ class Worker:
         self.left, self.segments = 0, []  # segments it may still run this cycle; those it ran
 
 
+def current_config(env) -> int:
+    return int(og.to_mask(env.set_goal(env.goal)["achieved_goal"]))
+
+
 def follow_path(w: Worker, path: list[int], deterministic: bool, frames: list | None = None):
-    """Program step: one segment per sub-goal of path[1:], moving on only while each is reached exactly
-    and the worker has segments left. Returns whether the path's last config was reached."""
+    """Program step: one segment per sub-goal of path[1:], moving on only while each is reached and
+    the worker has segments left. Returns whether the path's last config was reached."""
     for sub in path[1:]:
         if w.left <= 0:
             return False
@@ -1020,8 +787,91 @@ def follow_path(w: Worker, path: list[int], deterministic: bool, frames: list | 
     return True
 
 
-def current_config(env) -> int:
-    return int(og.to_mask(env.set_goal(env.goal)["achieved_goal"]))
+def pursue(learner: Learner, w: Worker, goal: int, explore: bool, deterministic: bool):
+    """Program step: a path from the current config to goal (sample_path on the semantic graph), then
+    follow it. Returns whether goal was reached."""
+    t = time.perf_counter()
+    path = sample_path(learner.graph, current_config(w.env), goal, w.rng, explore)
+    learner.plan_seconds += time.perf_counter() - t
+    return (yield from follow_path(w, path, deterministic))
+
+
+def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator]):
+    """Run one program per worker (a generator of Requests that receives each finished Segment) until
+    all are done. Each round, every worker with a request gets its segment, all stepped together;
+    each segment goes to its worker's list."""
+    requests = {}
+
+    def advance(w, segment):
+        try:
+            requests[w] = programs[w].send(segment)
+        except StopIteration:
+            requests.pop(w, None)
+
+    threads = torch.get_num_threads()
+    if physics_threads(agent.args.num_envs) > 1:  # torch's idle threads would spin on the cores the envs
+        torch.set_num_threads(1)  # step on; acting batches are small (measured: physics 1.7x faster)
+    try:
+        for w in programs:
+            advance(w, None)
+        while requests:
+            workers = list(requests)
+            segments = run_segments(agent, workers, [requests[w] for w in workers])
+            for w, segment in zip(workers, segments, strict=True):
+                w.segments.append(segment)
+                w.left -= 1
+                advance(w, segment)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> list[Segment]:
+    """One segment per worker, in lockstep: at each of the T steps, one forward pass acts for all of
+    them, then their envs step in parallel threads (MuJoCo releases the GIL while it simulates).
+    Exploration noise comes from each worker's own random stream."""
+    a, K, env = agent.args, len(workers), workers[0].env
+    T = a.segment_len
+    goals = og.from_mask(np.array([r.goal for r in requests], dtype=np.int64), a.n_blocks)
+    o = np.empty((K, T + 1, env.obs_dim), np.float32)
+    ag = np.empty((K, T + 1, env.goal_dim), np.float32)
+    actions = np.empty((K, T, 4), np.float32)
+    noise = np.zeros((K, T, 4), np.float32)
+    for k, (w, r) in enumerate(zip(workers, requests, strict=True)):
+        first = w.env.set_goal(goals[k])
+        o[k, 0], ag[k, 0] = first["observation"], first["achieved_goal"]
+        if not r.deterministic:
+            noise[k] = w.rng.standard_normal((T, 4), dtype=np.float32)
+    filming = [(w.env, r.frames) for w, r in zip(workers, requests, strict=True) if r.frames is not None]
+    for t in range(T):
+        actions[:, t] = agent.act(o[:, t], ag[:, t], goals, noise[:, t])
+        step_envs([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1])
+        for film_env, frames in filming:  # in this thread: a GL context belongs to the thread that made it
+            frames.append(film_env.render())
+    success = fetch5_env.goal_reached(ag[:, -1], goals)
+    stable = (ag[:, T - a.stable_steps :] == ag[:, -1:]).all((1, 2))
+    return [Segment(o[k], ag[k], goals[k], actions[k], bool(success[k]), bool(stable[k])) for k in range(K)]
+
+
+def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray):
+    """Every env one step, in physics_threads threads; observations written to obs_out and ag_out (K, .)."""
+
+    def step_some(ks):
+        for k in ks:
+            obs = envs[k].step(actions[k])[0]
+            obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
+
+    threads = physics_threads(len(envs))
+    if threads == 1:
+        step_some(range(len(envs)))
+    else:
+        list(physics_pool(threads).map(step_some, [range(i, len(envs), threads) for i in range(threads)]))
+
+
+@functools.cache
+def physics_threads(n_envs: int) -> int:
+    """Threads that step n_envs envs: one per env, at most this process's share of the node's cores."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(n_envs, cores // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))))
 
 
 @functools.cache
@@ -1029,142 +879,85 @@ def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
 
 
-class Learner:
-    """Everything a run carries: the workers, agent, semantic graph, replay, counters; and the driver
-    that runs the workers' programs (cycles, evaluation) in lockstep."""
+# ------------------------------------------------------------------------------------------------
+# Goal samplers: the hooks the rest of the file calls, and the autotelic cycle they share (SPEC §6)
+# ------------------------------------------------------------------------------------------------
+class Sampler:
+    """A goal sampler decides what every cycle does; the rest of the file uses only these hooks:
+      cycle(w)                        worker w's cycle program: yields Requests until w.left is spent
+      after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
+      after_update(batch, target)     after each SAC update, its batch and TD targets: a dict to log
+      epoch_stats()                   its progress.csv columns for this epoch
+      state_dict(), load_state_dict(s)    what checkpoints keep of it
+      stats, goals                    this epoch's counts (cleared each epoch); goals pursued so far
+    and check_sampler_args(args), a function: the first bad value of its options, described, or None.
+    This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic, goals uniform
+    over the agent's nodes; a sampler (the section after this one) overrides what it changes."""
 
-    def __init__(self, args: Args, device):
-        self.args = args
-        self.workers = [Worker(args, rank() * args.num_envs + i) for i in range(args.num_envs)]
-        self.n_workers = world() * args.num_envs  # every process's
-        env = self.workers[0].env
-        self.agent = SAC(args, env.obs_dim, device)
-        self.graph = SemanticGraph(args.n_blocks, args)
-        seg_capacity = max(1, args.buffer_size // args.segment_len)
-        self.buffer = ReplayBuffer(args.num_envs, seg_capacity, args.segment_len, env.obs_dim, env.goal_dim)
-        self.classes = og.evaluation_classes(args.n_blocks)
-        self.encountered: set[int] = set()  # every config met at any step of a training segment
-        self.epoch, self.cycle, self.segments, self.goals = 0, 0, 0, 0
-        self.plan_seconds = 0.0  # planning + graph updates, for the speed report
-        self.stats = collections.Counter()  # per-epoch counts kept by the goal sampler (all local workers)
-        self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
-        self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        cores //= int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # this process's share of the node's cores
-        self.physics_threads = max(1, min(args.num_envs, cores))
-        self.init_goal_sampler()
+    def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
+        self.args, self.learner, self.workers = args, learner, workers
+        self.stats, self.goals = collections.Counter(), 0
 
-    # --- the driver: every worker's program in lockstep (SPEC §11) --------------------------------
-    def drive(self, programs: dict[Worker, collections.abc.Generator]):
-        """Run one program per worker (a generator of Requests that receives each finished Segment) until
-        all are done. Each round, every worker with a request gets its segment, all stepped together;
-        each segment goes to its worker's list."""
-        requests = {}
+    def cycle(self, w: Worker):
+        self.stats["cycles"] += 1
+        yield from self.autotelic_cycle(w)
 
-        def advance(w, segment):
-            try:
-                requests[w] = programs[w].send(segment)
-            except StopIteration:
-                requests.pop(w, None)
-
-        threads = torch.get_num_threads()
-        if self.physics_threads > 1:  # torch's idle threads would spin on the cores the envs step on; acting
-            torch.set_num_threads(1)  # batches are small (measured: physics 1.7x faster, acting as fast)
-        try:
-            for w in programs:
-                advance(w, None)
-            while requests:
-                workers = list(requests)
-                segments = self.run_segments(workers, [requests[w] for w in workers])
-                for w, segment in zip(workers, segments, strict=True):
-                    w.segments.append(segment)
-                    w.left -= 1
-                    advance(w, segment)
-        finally:
-            torch.set_num_threads(threads)
-
-    def run_segments(self, workers: list[Worker], requests: list[Request]) -> list[Segment]:
-        """One segment per worker, in lockstep: at each of the T steps, one forward pass acts for all of
-        them, then their envs step in parallel threads (MuJoCo releases the GIL while it simulates).
-        Exploration noise comes from each worker's own random stream."""
-        a, T, K, env = self.args, self.args.segment_len, len(workers), workers[0].env
-        goals = og.from_mask(np.array([r.goal for r in requests], dtype=np.int64), a.n_blocks)
-        o = np.empty((K, T + 1, env.obs_dim), np.float32)
-        ag = np.empty((K, T + 1, env.goal_dim), np.float32)
-        actions = np.empty((K, T, 4), np.float32)
-        noise = np.zeros((K, T, 4), np.float32)
-        for k, (w, r) in enumerate(zip(workers, requests, strict=True)):
-            first = w.env.set_goal(goals[k])
-            o[k, 0], ag[k, 0] = first["observation"], first["achieved_goal"]
-            if not r.deterministic:
-                noise[k] = w.rng.standard_normal((T, 4), dtype=np.float32)
-        filming = [(w.env, r.frames) for w, r in zip(workers, requests, strict=True) if r.frames is not None]
-        for t in range(T):
-            actions[:, t] = self.agent.act(o[:, t], ag[:, t], goals, noise[:, t])
-            self.step([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1])
-            for film_env, frames in filming:  # in this thread: a GL context belongs to the thread that made it
-                frames.append(film_env.render())
-        success = (ag[:, -1] == goals).all(1)
-        stable = (ag[:, T - a.stable_steps :] == ag[:, -1:]).all((1, 2))
-        return [Segment(o[k], ag[k], goals[k], actions[k], bool(success[k]), bool(stable[k])) for k in range(K)]
-
-    def step(self, envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray):
-        """Every env one step; observations written to obs_out and ag_out (K, .)."""
-
-        def step_some(ks):
-            for k in ks:
-                obs = envs[k].step(actions[k])[0]
-                obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
-
-        n = min(len(envs), self.physics_threads)
-        if n == 1:
-            step_some(range(len(envs)))
-        else:
-            list(physics_pool(self.physics_threads).map(step_some, [range(i, len(envs), n) for i in range(n)]))
-
-    def run_cycle(self) -> list[list[Segment]]:
-        """One cycle of every worker (its goal sampler's program, see cycle_program), in lockstep; then what the
-        sampler's workers share is merged. Each worker's segments."""
-        for w in self.workers:
-            w.left, w.segments = self.args.n_segments, []
-        self.drive({w: self.cycle_program(w) for w in self.workers})
-        self.after_cycle()
-        return [w.segments for w in self.workers]
-
-    # --- autotelic goals (SPEC §6), common to every goal sampler ---------------------------------
-    def pursue(self, w: Worker, goal: int, explore: bool, deterministic: bool):
-        """Program step: plan from the current config to goal on the semantic graph and follow the
-        path. Returns whether goal was reached."""
-        t = time.perf_counter()
-        path = self.graph.plan(current_config(w.env), goal, w.rng, explore)
-        self.plan_seconds += time.perf_counter() - t
-        return (yield from follow_path(w, path, deterministic))
-
-    def autotelic_goals(self, w: Worker):
-        """Program: long-term goals until the cycle's segments are spent; reset the env before each (SPEC §6)."""
+    def autotelic_cycle(self, w: Worker):
+        """Program, Algorithm 1's autotelic branch (SPEC §6): reset, a goal (autotelic_goal) pursued along
+        a sampled path; until the cycle's segments are spent."""
         while w.left > 0:
             w.env.reset()
             goal = self.autotelic_goal(w)
-            reached = yield from self.pursue(w, goal, explore=True, deterministic=False)
+            reached = yield from pursue(self.learner, w, goal, explore=True, deterministic=False)
             self.goal_outcome(w, goal, reached)
 
-    # --- the goal sampler: value disagreement (SPEC §8) ---------------------------------------------
-    def init_goal_sampler(self):
-        self.vds = VDSEnsemble(self.args.vds_heads).to(self.agent.device)
-        broadcast_params(self.vds)
-        self.vds_opt = torch.optim.Adam(self.vds.parameters(), lr=self.args.lr_critic)
+    def autotelic_goal(self, w: Worker) -> int:
+        """G_s.sample_node(): uniform over the agent's nodes; before any exists, a uniform random +-1 vector."""
+        node = self.learner.graph.sample_node(w.rng)
+        if node is None:
+            return int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(self.args.n_blocks))))
+        return node
 
-    def cycle_program(self, w: Worker):
-        """Every cycle is autotelic; the value-disagreement sampler picks the goals."""
-        self.stats["cycles"] += 1
-        yield from self.autotelic_goals(w)
+    def goal_outcome(self, w: Worker, goal: int, reached: bool):
+        self.goals += 1
+        self.stats["autotelic_goals"] += 1
+        self.stats["autotelic_reached"] += reached
 
     def after_cycle(self):
-        """Nothing to merge: the ensemble learns in train, from every worker's batch."""
+        pass
+
+    def after_update(self, batch: dict, target: torch.Tensor) -> dict:
+        return {}
+
+    def epoch_stats(self) -> dict:
+        st = summed(self.stats, ["autotelic_goals", "autotelic_reached"])
+        return dict(autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]))
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, s: dict):
+        pass
+
+
+# ------------------------------------------------------------------------------------------------
+# The goal sampler: value disagreement (SPEC §8; paper Section 4.2)
+# ------------------------------------------------------------------------------------------------
+class GoalSampler(Sampler):
+    """Value disagreement (SPEC §8): every cycle is autotelic (Sampler.autotelic_cycle). Before each goal,
+    up to vds_candidates of the agent's nodes are scored by how much an ensemble of extra Q heads
+    (VDSEnsemble, which learns the critic's TD targets after each SAC update: after_update) disagrees
+    about them, and one is drawn with probability softmax(disagreement / temperature)."""
+
+    def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
+        super().__init__(args, learner, workers)
+        self.vds = VDSEnsemble(args.vds_heads).to(learner.agent.device)
+        broadcast_params(self.vds)
+        self.vds_opt = torch.optim.Adam(self.vds.parameters(), lr=args.lr_critic)
 
     def readout(self, obs, ag, g, action) -> torch.Tensor:
         """The critic's node readout at (obs, action) for goal g: the features the heads read."""
-        gi, critic = self.agent.gi, self.agent.critic
+        gi, critic = self.learner.agent.gi, self.learner.agent.critic
         body, blocks = split_obs(obs, gi.n)
         msg = critic.messages(gi, blocks, g - ag)
         return critic.q_nodes[0](node_inputs([action, body], [blocks, msg])).sum(1)
@@ -1172,22 +965,23 @@ class Learner:
     @torch.no_grad()
     def disagreement(self, w: Worker, candidates: np.ndarray) -> np.ndarray:
         """Std over the heads of Q(s, pi(s, g), g) at the worker's current observation, for each candidate g."""
+        agent = self.learner.agent
         obs = w.env.set_goal(w.env.goal)
-        c, dev, gi = len(candidates), self.agent.device, self.agent.gi
-        o = torch.as_tensor(np.repeat(self.agent.normalizer(obs["observation"])[None], c, 0), device=dev)
+        c, dev, gi = len(candidates), agent.device, agent.gi
+        o = torch.as_tensor(np.repeat(agent.normalizer(obs["observation"])[None], c, 0), device=dev)
         ag = torch.as_tensor(np.repeat(obs["achieved_goal"][None], c, 0), device=dev)
         g = torch.as_tensor(og.from_mask(candidates, self.args.n_blocks), device=dev)
         body, blocks = split_obs(o, gi.n)
-        action = torch.tanh(self.agent.actor(body, blocks, self.agent.critic.messages(gi, blocks, g - ag))[0])
+        action = torch.tanh(agent.actor(body, blocks, agent.critic.messages(gi, blocks, g - ag))[0])
         return self.vds(self.readout(o, ag, g, action)).std(dim=0).cpu().numpy()
 
     def autotelic_goal(self, w: Worker) -> int:
         """Up to vds_candidates nodes drawn uniformly, one chosen with probability
-        softmax(disagreement / temperature); before any node exists, a random +-1 vector."""
-        a = self.args
-        if self.graph.n_nodes == 0:
-            return int(og.to_mask(w.rng.choice([-1.0, 1.0], size=og.config_dim(a.n_blocks))))
-        nodes = np.asarray(self.graph.masks, dtype=np.int64)
+        softmax(disagreement / temperature); before any node exists, Sampler's."""
+        a, graph = self.args, self.learner.graph
+        if graph.n_nodes == 0:
+            return super().autotelic_goal(w)
+        nodes = np.asarray(graph.masks, dtype=np.int64)
         candidates = nodes if len(nodes) <= a.vds_candidates else w.rng.choice(nodes, a.vds_candidates, False)
         score = self.disagreement(w, candidates)
         self.stats["vds_scored"] += 1
@@ -1196,18 +990,15 @@ class Learner:
         logits = (score - score.max()) / a.vds_temperature  # shifted first: a tiny temperature gives inf - inf
         return int(candidates[w.rng.choice(len(candidates), p=softmax(logits))])
 
-    def goal_outcome(self, w: Worker, goal: int, reached: bool):
-        self.goals += 1
-        self.stats["autotelic_goals"] += 1
-        self.stats["autotelic_reached"] += reached
+    def after_update(self, batch: dict, target: torch.Tensor) -> dict:
+        return self.train_vds(batch, target)
 
-    def train_vds(self) -> dict:
+    def train_vds(self, batch: dict, target: torch.Tensor) -> dict:
         """The heads regress the TD target of the critic update just made (SPEC §8), each worker's samples
         weighing as a worker's own loss would (SPEC §11). Returns their loss and the share of the targets'
         variance they explain (1 - MSE / Var: scale-free as Q grows)."""
-        b, target = self.agent.last_batch, self.agent.last_target
         with torch.no_grad():
-            features = self.readout(b["obs"], b["ag"], b["g"], b["action"])
+            features = self.readout(batch["obs"], batch["ag"], batch["g"], batch["action"])
         mse = ((self.vds(features) - target[None]) ** 2).mean(1)
         loss = self.args.num_envs * mse.sum()
         self.vds_opt.zero_grad()
@@ -1217,27 +1008,67 @@ class Learner:
         explained = 1 - mse.mean().item() / max(target.var().item(), 1e-12)
         return dict(vds_loss=mse.sum().item(), vds_explained=explained)
 
-    def sampler_stats(self) -> dict:
-        """Per-epoch VDS numbers: mean disagreement of the scored candidates and its spread."""
-        st = self.summed_stats(["autotelic_goals", "autotelic_reached", "vds_scored", "vds_disagreement", "vds_spread"])
+    def epoch_stats(self) -> dict:
+        """Besides autotelic success: mean disagreement of the scored candidates and its spread."""
+        st = summed(self.stats, ["vds_scored", "vds_disagreement", "vds_spread"])
         scored = max(1, st["vds_scored"])
-        return dict(
-            autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]),
+        return super().epoch_stats() | dict(
             vds_disagreement=st["vds_disagreement"] / scored,
             vds_spread=st["vds_spread"] / scored,
         )
 
-    def sampler_state(self) -> dict:
+    def state_dict(self) -> dict:
         return dict(vds=self.vds.state_dict(), vds_opt=self.vds_opt.state_dict())
 
-    def load_sampler_state(self, s: dict):
+    def load_state_dict(self, s: dict):
         self.vds.load_state_dict(s["vds"])
         self.vds_opt.load_state_dict(s["vds_opt"])
 
-    # --- learning -------------------------------------------------------------------------------
-    def summed_stats(self, keys: list[str]) -> dict[str, float]:
-        """This epoch's goal-sampler counts, summed over workers."""
-        return dict(zip(keys, all_sum(np.array([self.stats[k] for k in keys], dtype=np.float64)), strict=True))
+
+class VDSEnsemble(nn.Module):
+    """Extra Q heads on the critic's node readout (its first Q head's node net, summed over nodes)."""
+
+    def __init__(self, n_heads: int):
+        super().__init__()
+        self.heads = nn.ModuleList([MLP(CRITIC_NODE_OUT, 256, 1, out_relu=False) for _ in range(n_heads)])
+        init_weights(self)
+
+    def forward(self, readout: torch.Tensor) -> torch.Tensor:
+        return torch.stack([h(readout).squeeze(-1) for h in self.heads])  # (heads, B)
+
+
+def softmax(x: np.ndarray) -> np.ndarray:
+    e = np.exp(x - x.max())
+    return e / e.sum()
+
+
+def check_sampler_args(a: Args) -> str | None:
+    """The goal sampler's options (VDS, SPEC §8)."""
+    if a.vds_heads < 2 or a.vds_candidates < 1:
+        return f"--vds-heads must be at least 2 and --vds-candidates at least 1, got {a.vds_heads}, {a.vds_candidates}"
+    if not a.vds_temperature > 0:
+        return f"--vds-temperature must be positive, got {a.vds_temperature}"
+    return None
+
+
+# ------------------------------------------------------------------------------------------------
+# Learning: replay, normalizer, semantic graph, SAC updates (Algorithm 1: B, G_s and PE updates; Π.update)
+# ------------------------------------------------------------------------------------------------
+class Learner:
+    """What learns from the workers' segments: the agent (SAC and its normalizer), each worker's replay,
+    the semantic graph with its success rates (the paper's G_s and PE), and the configs met."""
+
+    def __init__(self, args: Args, device):
+        self.args, n = args, args.n_blocks
+        self.agent = SAC(args, BODY + PER_BLOCK * n, device)
+        self.graph = SemanticGraph(n, args)
+        seg_capacity = max(1, args.buffer_size // args.segment_len)
+        self.buffer = ReplayBuffer(
+            args.num_envs, seg_capacity, args.segment_len, BODY + PER_BLOCK * n, og.config_dim(n)
+        )
+        self.encountered: set[int] = set()  # every config met at any step of a training segment
+        self.segments = 0  # every worker's, so far
+        self.plan_seconds = 0.0  # planning + graph updates this epoch, for the speed report
 
     def learn_from(self, per_worker: list[list[Segment]]):
         """Store each worker's segments (per_worker[i]: worker i's, as many for each) in its replay, update
@@ -1258,137 +1089,469 @@ class Learner:
         self.plan_seconds += time.perf_counter() - t
         self.segments += len(outcomes)
 
-    def train(self) -> dict:
-        """The cycle's SAC updates, each on a batch from every worker's replay; returns the mean of each
-        loss and statistic over them."""
+    def train(self, rngs: list[np.random.Generator], after_update=lambda batch, target: {}) -> dict:
+        """The cycle's SAC updates, each on a batch from every worker's replay (drawn with `rngs`, the
+        workers' streams); after each, the goal sampler's hook. The mean of each logged value."""
         a, infos = self.args, []
         her_prob = 1 - 1 / (1 + a.her_k)
-        rngs = [w.rng for w in self.workers]
         for _ in range(a.n_updates if self.buffer.size else 0):
             info = self.agent.update(self.buffer.sample(a.batch_size, rngs, her_prob, a.her_strategy))
-            info.update(self.train_vds())
-            infos.append(info)
+            infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
         return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
-
-    # --- evaluation (SPEC §9) -------------------------------------------------------------------
-    def evaluate(self, video: dict | None = None, graph: SemanticGraph | None = None) -> dict[str, float]:
-        """SR per class: every worker runs its share of the goals (see evaluation), all in lockstep.
-        `video`, if given, receives the frames of each class's first video_episodes (worker 0's);
-        `graph`, if given, plans instead of the agent's (the oracle's, for --plan-on oracle)."""
-        wins = np.zeros((len(self.workers), len(self.classes)))
-        for w in self.workers:
-            w.left, w.segments = math.inf, []
-        self.drive({w: self.evaluation(w, graph or self.graph, wins[i], video) for i, w in enumerate(self.workers)})
-        for w in self.workers:
-            w.segments = []  # test segments are neither stored nor used to update the graph
-        rates = all_sum(wins.sum(0)) / max(1, self.args.eval_goals_per_class)
-        sr = dict(zip(self.classes, rates.tolist(), strict=True))
-        sr["global"] = float(np.mean(rates))
-        return sr
-
-    def evaluation(self, w: Worker, graph: SemanticGraph, wins: np.ndarray, video: dict | None):
-        """Program: per class, goals drawn uniformly, goal i of the class to worker i mod workers (SPEC §9);
-        reset, plan the safest path, follow it deterministically with at most max_eval_subgoals segments;
-        success = the last segment ends exactly on the goal. Adds the successes per class to `wins`."""
-        a = self.args
-        for k, (name, members) in enumerate(self.classes.items()):
-            share = len(range(w.index, a.eval_goals_per_class, self.n_workers))
-            for i, goal in enumerate(members[w.rng.integers(len(members), size=share)]):
-                w.env.reset()
-                filmed = video is not None and w.index == 0 and i < a.video_episodes
-                path = graph.plan(current_config(w.env), int(og.to_mask(goal)), w.rng, explore=False)
-                path = [path[0]] + path[1:][-a.max_eval_subgoals :]
-                wins[k] += yield from follow_path(w, path, True, video.setdefault(name, []) if filmed else None)
-
-    def encounters(self) -> dict[str, int]:
-        """Distinct configs of each class met so far."""
-        met = np.array(sorted(self.encountered), dtype=np.int64)
-        return {name: int(np.isin(og.to_mask(m), met).sum()) for name, m in self.classes.items()}
-
-    # --- checkpoints (SPEC §10) -----------------------------------------------------------------
-    def state_dict(self) -> dict:
-        ag = self.agent
-        state = dict(
-            script=SCRIPT,
-            env_version=ENV_VERSION,
-            args=dataclasses.asdict(self.args),
-            counters=dict(
-                epoch=self.epoch, cycle=self.cycle, segments=self.segments, goals=self.goals, n_updates=ag.n_updates
-            ),
-            epoch_so_far=dict(tally=copy.deepcopy(self.tally), stats=plain(self.stats), plan_seconds=self.plan_seconds),
-            rows=copy.deepcopy(self.rows),
-            actor=ag.actor.state_dict(),
-            critic=ag.critic.state_dict(),
-            critic_target=ag.critic_target.state_dict(),
-            actor_opt=ag.actor_opt.state_dict(),
-            critic_opt=ag.critic_opt.state_dict(),
-            normalizer=dict(
-                sum=torch.tensor(ag.normalizer.sum), sumsq=torch.tensor(ag.normalizer.sumsq), count=ag.normalizer.count
-            ),
-            graph=self.graph.state_dict(),
-            encountered=torch.tensor(sorted(self.encountered), dtype=torch.int64),
-            **self.sampler_state(),
-            rng=[json.dumps(w.rng.bit_generator.state) for w in self.workers],  # each worker's, of this process
-            env_rng=[json.dumps(w.env.np_random.bit_generator.state) for w in self.workers],
-        )
-        if self.args.save_buffer:
-            b, n = self.buffer, self.buffer.size
-            # One tensor per worker: a view of worker i's first n segments holds only them, where a view of
-            # every worker's would hold (and torch.save write) the whole array between them.
-            state["buffer"] = dict(
-                **{k: [torch.from_numpy(getattr(b, k)[i, :n]) for i in range(len(self.workers))]
-                   for k in ("obs", "ag", "g", "actions")},
-                ptr=b.ptr,
-            )  # fmt: skip
-        return state
-
-    def load_state_dict(self, s: dict):
-        ag = self.agent
-        if not isinstance(s.get("rng", []), list):
-            raise ValueError("written before --num-envs (one random stream per worker): retrain, or use that version")
-        c = s["counters"]
-        self.epoch, self.cycle, self.segments, self.goals, ag.n_updates = (
-            c["epoch"],
-            c["cycle"],
-            c["segments"],
-            c["goals"],
-            c["n_updates"],
-        )
-        so_far = s["epoch_so_far"]
-        self.tally, self.plan_seconds = so_far["tally"], so_far["plan_seconds"]
-        self.stats = collections.Counter(so_far["stats"])
-        self.rows = s["rows"]
-        for name in ("actor", "critic", "critic_target", "actor_opt", "critic_opt"):
-            getattr(ag, name).load_state_dict(s[name])
-        ag.normalizer.sum[:], ag.normalizer.sumsq[:], ag.normalizer.count = 0.0, 0.0, 0
-        ag.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
-        self.graph.load_state_dict(s["graph"])
-        self.encountered = set(s["encountered"].tolist())
-        self.load_sampler_state(s)
-        if rank() > 0:  # the checkpoint holds process 0's random streams and replays: the others start anew
-            for w in self.workers:
-                w.rng = np.random.default_rng([self.args.seed + w.index, self.epoch, self.cycle])
-                w.env.reset(seed=int(w.rng.integers(2**31)))
-            self.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
-            self.tally.update(wins=0, tries=0)
-            return
-        for w, rng, env_rng in zip(self.workers, s.get("rng", []), s.get("env_rng", []), strict=False):
-            w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
-            w.env.np_random.bit_generator.state = json.loads(env_rng)
-        if "buffer" in s:
-            b, n = self.buffer, len(s["buffer"]["obs"][0])
-            for k in ("obs", "ag", "g", "actions"):
-                for i, saved in enumerate(s["buffer"][k]):
-                    getattr(b, k)[i, :n] = saved.numpy()
-            b.size, b.ptr = n, s["buffer"]["ptr"]
 
 
 # ------------------------------------------------------------------------------------------------
-# Checkpoints (plumbing; SPEC §10): atomic saves, safe loads, what --resume and --eval-only may change
+# Evaluation (SPEC §9)
+# ------------------------------------------------------------------------------------------------
+def evaluate(run: Run, video: dict | None = None, graph: SemanticGraph | None = None) -> dict[str, float]:
+    """SR per class: every worker runs its share of the goals (see evaluation), all in lockstep.
+    `video`, if given, receives the frames of each class's first video_episodes (worker 0's);
+    `graph`, if given, plans instead of the agent's (the oracle's, for --plan-on oracle)."""
+    wins = np.zeros((len(run.workers), len(run.classes)))
+    for w in run.workers:
+        w.left, w.segments = math.inf, []
+    graph = graph or run.learner.graph
+    drive(run.learner.agent, {w: evaluation(run, w, graph, wins[i], video) for i, w in enumerate(run.workers)})
+    for w in run.workers:
+        w.segments = []  # test segments are neither stored nor used to update the graph
+    rates = all_sum(wins.sum(0)) / max(1, run.args.eval_goals_per_class)
+    sr = dict(zip(run.classes, rates.tolist(), strict=True))
+    sr["global"] = float(np.mean(rates))
+    return sr
+
+
+def evaluation(run: Run, w: Worker, graph: SemanticGraph, wins: np.ndarray, video: dict | None):
+    """Program: per class, goals drawn uniformly, goal i of the class to worker i mod workers (SPEC §9);
+    reset, plan the safest path, follow it deterministically with at most max_eval_subgoals segments;
+    success = the last segment ends on the goal. Adds the successes per class to `wins`."""
+    a = run.args
+    for k, (name, members) in enumerate(run.classes.items()):
+        share = len(range(w.index, a.eval_goals_per_class, run.n_workers))
+        for i, goal in enumerate(members[w.rng.integers(len(members), size=share)]):
+            w.env.reset()
+            filmed = video is not None and w.index == 0 and i < a.video_episodes
+            path = sample_path(graph, current_config(w.env), int(og.to_mask(goal)), w.rng, explore=False)
+            path = [path[0]] + path[1:][-a.max_eval_subgoals :]
+            wins[k] += yield from follow_path(w, path, True, video.setdefault(name, []) if filmed else None)
+
+
+def oracle_planner(args: Args) -> SemanticGraph:
+    """The oracle graph (SPEC §4) as a semantic graph whose edges all share one SR, the prior: its safest
+    paths are then its shortest ones, drawn uniformly. For evaluation only (--plan-on oracle): it tells
+    the policy's skill apart from the agent graph's, and plans for an agent that has no graph (the paper's)."""
+    oracle = og.OracleGraph(args.n_blocks)
+    heads = np.repeat(np.arange(oracle.n_nodes), np.diff(oracle.indptr))
+    graph = SemanticGraph(args.n_blocks, args)
+    graph.load_state_dict(dict(
+        masks=torch.from_numpy(oracle.masks),
+        edges=torch.from_numpy(np.column_stack([heads, oracle.indices, np.zeros_like(heads)])),  # SR class 0
+        class_keys=torch.zeros((0, 2), dtype=torch.int64),
+        sr=torch.tensor([args.sr_prior], dtype=torch.float64),
+    ))  # fmt: skip
+    return graph
+
+
+# ------------------------------------------------------------------------------------------------
+# The main loop: epochs of cycles, each cycle collect -> learn -> update (SPEC §5)
+# ------------------------------------------------------------------------------------------------
+class Run:
+    """A run: its workers, what learns, the goal sampler, and where it stands (all a checkpoint saves)."""
+
+    def __init__(self, args: Args, device):
+        self.args, self.n_workers = args, world() * args.num_envs  # every process's workers
+        self.workers = [Worker(args, rank() * args.num_envs + i) for i in range(args.num_envs)]
+        self.learner = Learner(args, device)
+        self.sampler = GoalSampler(args, self.learner, self.workers)
+        self.classes = og.evaluation_classes(args.n_blocks)
+        self.epoch, self.cycle = 0, 0
+        self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
+        self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
+
+
+def run_cycle(run: Run) -> list[list[Segment]]:
+    """One cycle of every worker (its goal sampler's program), in lockstep; then what the workers share
+    is merged (SPEC §11). Each worker's segments."""
+    for w in run.workers:
+        w.left, w.segments = run.args.n_segments, []
+    drive(run.learner.agent, {w: run.sampler.cycle(w) for w in run.workers})
+    run.sampler.after_cycle()
+    return [w.segments for w in run.workers]
+
+
+def one_cycle(run: Run):
+    """Collect a cycle's segments, learn from them (replay, normalizer, semantic graph), then the cycle's
+    SAC updates (SPEC §5)."""
+    tally, t = run.tally, time.perf_counter()
+    per_worker = run_cycle(run)
+    run.learner.learn_from(per_worker)
+    tally["wins"] += sum(s.success for ws in per_worker for s in ws)
+    tally["tries"] += sum(len(ws) for ws in per_worker)
+    tally["collect"] += (t_update := time.perf_counter()) - t
+    tally["losses"].update(run.learner.train([w.rng for w in run.workers], run.sampler.after_update))
+    tally["update"] += time.perf_counter() - t_update
+    run.cycle += 1
+
+
+def train_loop(run: Run, logger: Logger | None, ckpt_path: Path, stopper: Stopper) -> int:
+    """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row
+    (in that order: a row is never logged unless a checkpoint holds it)."""
+    args = run.args
+    while run.epoch < args.n_epochs:
+        while run.cycle < args.n_cycles:
+            one_cycle(run)
+            if run.cycle == 1 or run.cycle % max(1, args.n_cycles // 10) == 0:
+                progress(f"  epoch {run.epoch} cycle {run.cycle}/{args.n_cycles} | nodes {run.learner.graph.n_nodes:,} "
+                         f"| critic loss {run.tally['losses']['critic_loss']:.3f}")  # fmt: skip
+            if stopper.agreed():
+                return stop_here(run, save_state(run) if rank() == 0 else None, ckpt_path)
+        before_eval = save_state(run) if world() == 1 else None  # cheap: views of the live tensors
+        t = time.perf_counter()
+        try:
+            with stopper.abortable(allowed=before_eval is not None):
+                sr = evaluate(run)
+        except KeyboardInterrupt:
+            return stop_here(run, before_eval, ckpt_path)
+        run.tally["eval"] = time.perf_counter() - t
+        row = finish_epoch(run, sr)
+        if logger is not None:
+            save_checkpoint(save_state(run), ckpt_path)
+            logger.log(row)
+        per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
+        progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
+                 f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
+                 final=True)  # fmt: skip
+        if stopper.agreed():
+            return stop_here(run, None, ckpt_path)
+    return 0
+
+
+LOSSES = ("critic_loss", "actor_loss", "q", "target", "entropy")  # fixed columns, NaN before any update
+
+
+def new_tally(env_steps: int) -> dict:
+    """An epoch's running totals for its progress.csv row: segment outcomes, the last cycle's losses,
+    seconds per phase."""
+    return dict(wins=0, tries=0, losses=dict.fromkeys(LOSSES, math.nan), collect=0.0, update=0.0, eval=0.0,
+                env_steps_at_start=env_steps)  # fmt: skip
+
+
+def finish_epoch(run: Run, sr: dict[str, float]) -> dict:
+    """The epoch's progress.csv row (SPEC §10; TensorBoard groups its columns, see tensorboard_tag); the
+    run moves on to the next epoch."""
+    learner, tally = run.learner, run.tally
+    steps = learner.segments * run.args.segment_len  # all workers'
+    goals, wins, tries = all_sum(np.array([run.sampler.goals, tally["wins"], tally["tries"]], dtype=np.float64))
+    seconds = tally["collect"] + tally["update"] + tally["eval"]
+    met = np.array(sorted(learner.encountered), dtype=np.int64)
+    row = plain(dict(
+        epoch=run.epoch, goals=int(goals), segments=learner.segments, env_steps=steps, global_sr=sr["global"],
+        train_success=wins / max(1, tries),
+        **{f"sr_{k}": sr[k] for k in run.classes},
+        **{f"encounters_{k}": int(np.isin(og.to_mask(m), met).sum()) for k, m in run.classes.items()},
+        **run.sampler.epoch_stats(),
+        agent_nodes=learner.graph.n_nodes, agent_edges=learner.graph.n_edges, sr_classes=len(learner.graph.sr),
+        **tally["losses"],
+        time_collect=tally["collect"], time_update=tally["update"], time_eval=tally["eval"],
+        time_plan_and_graph=learner.plan_seconds,
+        steps_per_second=(steps - tally["env_steps_at_start"]) / max(seconds, 1e-9),
+    ))  # fmt: skip
+    run.rows.append(row)
+    run.epoch, run.cycle = run.epoch + 1, 0
+    run.tally, learner.plan_seconds = new_tally(steps), 0.0
+    run.sampler.stats.clear()
+    return row
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line (plumbing): argparse built from Args, each field's docstring its --help line
+# ------------------------------------------------------------------------------------------------
+def _field_docs(cls) -> dict[str, str]:
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {
+        a.target.id: b.value.value
+        for a, b in zip(body, body[1:], strict=False)
+        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
+    }
+
+
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str):
+        """Bad input: one line naming the value, exit code 2 (not argparse's screen of usage)."""
+        self.exit(2, f"{self.prog}: error: {message} (--help lists every option)\n")
+
+
+def make_parser(with_defaults: bool = True) -> argparse.ArgumentParser:
+    """argparse built from Args, each field's docstring and default its --help line. Without defaults,
+    parsing yields only the flags the user gave (see given_flags)."""
+    parser = OneLineParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    if not with_defaults:
+        parser.argument_default = argparse.SUPPRESS
+    docs = {k: v.replace("%", "%%") for k, v in _field_docs(Args).items()}  # argparse formats help with %
+    for f in dataclasses.fields(Args):
+        flag, default = "--" + f.name.replace("_", "-"), f.default if with_defaults else argparse.SUPPRESS
+        text = docs[f.name] + (f" (default: {f.default!r})" if with_defaults else "")
+        if f.type in ("bool", bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=text)
+        else:
+            kind = {"int": int, "float": float, "str": str}[f.type]
+            parser.add_argument(flag, type=kind, default=default, help=text, metavar=kind.__name__.upper())
+    return parser
+
+
+def parse_args(argv=None) -> Args:
+    parser = make_parser()
+    args = Args(**vars(parser.parse_args(argv)))
+    problem = check_args(args)
+    if problem:
+        parser.error(problem)  # exit code 2, the message names the value
+    return args
+
+
+def given_flags(argv=None) -> set[str]:
+    """The Args fields the command line sets explicitly (whatever their value)."""
+    return set(vars(make_parser(with_defaults=False).parse_args(argv)))
+
+
+def check_args(a: Args) -> str | None:
+    """The first bad value in a, described, or None."""
+    for f in dataclasses.fields(Args):
+        value = getattr(a, f.name)
+        if f.type in ("float", float) and not math.isfinite(value):
+            return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
+    at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
+                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals",
+                  "init_prior_count", "num_envs")  # fmt: skip
+    for name in at_least_1:
+        if getattr(a, name) < 1:
+            return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
+    for name in ("n_updates", "her_k", "threads", "video_episodes"):
+        if getattr(a, name) < 0:
+            return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
+    for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
+    if not 0 <= a.seed < 2**32:
+        return f"--seed must be in [0, 2**32), got {a.seed}"
+    if a.alpha < 0:
+        return f"--alpha must be non-negative, got {a.alpha}"
+    for name in ("lr_actor", "lr_critic"):
+        if getattr(a, name) <= 0:
+            return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
+    if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
+        return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
+    if a.her_strategy not in ("final", "future"):
+        return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
+    if a.plan_on not in ("agent", "oracle"):
+        return f"--plan-on must be 'agent' or 'oracle', got {a.plan_on!r}"
+    if a.max_path_len < 2:
+        return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
+    if a.stable_steps > a.segment_len:
+        return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
+    if a.buffer_size < a.n_segments * a.segment_len:
+        return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
+    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
+    replay_bytes = a.num_envs * a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)  # each worker's
+    if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
+        return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "
+                "memory than this machine has")  # fmt: skip
+    if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
+        return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
+        return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
+    if a.cuda and not torch.cuda.is_available():
+        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
+    return check_run_control(a) or check_sampler_args(a)
+
+
+MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
+
+
+def check_run_control(a: Args) -> str | None:
+    """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
+    need."""
+    if a.resume and a.eval_only:
+        return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
+    if a.init_from and (a.resume or a.eval_only):
+        return (f"--init-from {a.init_from!r} starts a new run: not with --resume (which continues one) or "
+                "--eval-only (evaluate the file with --eval-only --checkpoint PATH)")  # fmt: skip
+    if a.resume and not os.path.isfile(a.resume):
+        return f"--resume: cannot read checkpoint {a.resume!r}"
+    if a.init_from and not os.path.isfile(a.init_from):
+        return f"--init-from: cannot read {a.init_from!r}"
+    if a.eval_only and not os.path.isfile(a.checkpoint):
+        return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
+    if a.checkpoint and not a.eval_only:
+        return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
+    if a.capture_video and not a.eval_only:
+        return "--capture-video films an --eval-only evaluation; add --eval-only --checkpoint PATH"
+    if a.plan_on != "agent" and not a.eval_only:
+        return f"--plan-on {a.plan_on!r} plans an --eval-only evaluation; add --eval-only --checkpoint PATH"
+    if not (a.resume or a.eval_only):
+        parent = Path(a.runs_dir).absolute()
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            return f"--runs-dir {a.runs_dir!r}: cannot create a run folder under {str(parent)!r}"
+    return None
+
+
+# ------------------------------------------------------------------------------------------------
+# Processes (plumbing; SPEC §11): one by default; under torchrun, several, holding the workers
+# ------------------------------------------------------------------------------------------------
+def init_workers(args: Args) -> torch.device:
+    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this process's device."""
+    cuda = args.cuda and torch.cuda.is_available()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        if cuda:
+            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
+
+
+def rank() -> int:
+    return dist.get_rank() if dist.is_initialized() else 0
+
+
+def world() -> int:
+    return dist.get_world_size() if dist.is_initialized() else 1
+
+
+def _comm_device() -> torch.device:
+    return torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else torch.device("cpu")
+
+
+def all_sum(x: np.ndarray) -> np.ndarray:
+    """Element-wise sum over processes (float64)."""
+    if world() == 1:
+        return x
+    t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
+    dist.all_reduce(t)
+    return t.cpu().numpy()
+
+
+def gather_workers(local: np.ndarray) -> np.ndarray:
+    """(all workers, ...) float64 rows from this process's (num_envs, ...) rows, in global worker order: a
+    sum of zero-padded copies, which adds nothing but zeros to any value."""
+    if world() == 1:
+        return np.asarray(local, dtype=np.float64)
+    full = np.zeros((world() * len(local), *np.shape(local)[1:]))
+    full[rank() * len(local) : (rank() + 1) * len(local)] = local
+    return all_sum(full)
+
+
+def all_gather_rows(rows: np.ndarray) -> np.ndarray:
+    """Every process's int64 rows (any number each), concatenated in rank order, so in global worker order
+    when each process gives its workers' rows in order: the same in every process."""
+    rows = np.asarray(rows, dtype=np.int64)
+    if world() == 1:
+        return rows
+    dev = _comm_device()
+    counts = [torch.zeros(1, dtype=torch.int64, device=dev) for _ in range(world())]
+    dist.all_gather(counts, torch.tensor([len(rows)], device=dev))
+    counts = [int(c) for c in counts]
+    padded = torch.zeros((max(counts), *rows.shape[1:]), dtype=torch.int64, device=dev)
+    padded[: len(rows)] = torch.as_tensor(rows, device=dev)
+    parts = [torch.empty_like(padded) for _ in counts]
+    dist.all_gather(parts, padded)
+    return torch.cat([p[:c] for p, c in zip(parts, counts, strict=True)]).cpu().numpy()
+
+
+def broadcast_params(*modules: nn.Module):
+    """Every process starts from process 0's parameters."""
+    if world() > 1:
+        for t in (t for m in modules for t in m.state_dict().values()):
+            dist.broadcast(t, src=0)
+
+
+def sum_grads(params: list[torch.Tensor]):
+    """Gradients summed over processes, in one all-reduce (within a process, the losses already sum its
+    workers', see SAC.losses): the sum over all workers of SPEC §11."""
+    if world() > 1:
+        grads = [p.grad for p in params]
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        dist.all_reduce(flat)
+        for g, synced in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
+            g.copy_(synced.view_as(g))
+
+
+def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
+    """Counts of this process's workers (a goal sampler's stats), summed over every process."""
+    return dict(zip(keys, all_sum(np.array([counts[k] for k in keys], dtype=np.float64)), strict=True))
+
+
+# ------------------------------------------------------------------------------------------------
+# Checkpoints (plumbing; SPEC §10): the run's state, atomic saves, safe loads, what --resume and
+# --eval-only may change
 # ------------------------------------------------------------------------------------------------
 SCRIPT = Path(__file__).stem  # a checkpoint names the script that wrote it
 ENV_VERSION = fetch5_env.ENV_VERSION  # ... and the environment it was trained in
 CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
+NETWORKS = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # SAC's, as saved
+REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays
+
+
+def save_state(run: Run) -> dict:
+    """Everything the rest of the run depends on (SPEC §10): a resumed run is the uninterrupted one."""
+    agent, learner = run.learner.agent, run.learner
+    state = dict(
+        script=SCRIPT, env_version=ENV_VERSION, args=dataclasses.asdict(run.args),
+        counters=dict(epoch=run.epoch, cycle=run.cycle, segments=learner.segments, goals=run.sampler.goals,
+                      n_updates=agent.n_updates),
+        epoch_so_far=dict(tally=copy.deepcopy(run.tally), stats=plain(run.sampler.stats),
+                          plan_seconds=learner.plan_seconds),
+        rows=copy.deepcopy(run.rows),
+        **{name: getattr(agent, name).state_dict() for name in NETWORKS},
+        normalizer=dict(sum=torch.tensor(agent.normalizer.sum), sumsq=torch.tensor(agent.normalizer.sumsq),
+                        count=agent.normalizer.count),
+        graph=learner.graph.state_dict(),
+        encountered=torch.tensor(sorted(learner.encountered), dtype=torch.int64),
+        **run.sampler.state_dict(),
+        rng=[json.dumps(w.rng.bit_generator.state) for w in run.workers],  # each worker's, of this process
+        env_rng=[json.dumps(w.env.np_random.bit_generator.state) for w in run.workers],
+    )  # fmt: skip
+    if run.args.save_buffer:
+        b, n = learner.buffer, learner.buffer.size
+        # One tensor per worker: a view of worker i's first n segments holds only them, where a view of
+        # every worker's would hold (and torch.save write) the whole array between them.
+        saved = {k: [torch.from_numpy(getattr(b, k)[i, :n]) for i in range(len(run.workers))] for k in REPLAY}
+        state["buffer"] = dict(ptr=b.ptr, **saved)
+    return state
+
+
+def load_state(run: Run, s: dict):
+    """The run as save_state saw it (process 0's random streams and replays; see below for the others)."""
+    agent, learner = run.learner.agent, run.learner
+    if not isinstance(s.get("rng", []), list):
+        raise ValueError("written before --num-envs (one random stream per worker): retrain, or use that version")
+    c, so_far = s["counters"], s["epoch_so_far"]
+    run.epoch, run.cycle, learner.segments, run.sampler.goals = c["epoch"], c["cycle"], c["segments"], c["goals"]
+    agent.n_updates = c["n_updates"]
+    run.tally, learner.plan_seconds = so_far["tally"], so_far["plan_seconds"]
+    run.sampler.stats = collections.Counter(so_far["stats"])
+    run.rows = s["rows"]
+    for name in NETWORKS:
+        getattr(agent, name).load_state_dict(s[name])
+    agent.normalizer.sum[:], agent.normalizer.sumsq[:], agent.normalizer.count = 0.0, 0.0, 0
+    agent.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
+    learner.graph.load_state_dict(s["graph"])
+    learner.encountered = set(s["encountered"].tolist())
+    run.sampler.load_state_dict(s)
+    if rank() > 0:  # the checkpoint holds process 0's random streams and replays: the others start anew
+        for w in run.workers:
+            w.rng = np.random.default_rng([run.args.seed + w.index, run.epoch, run.cycle])
+            w.env.reset(seed=int(w.rng.integers(2**31)))
+        run.sampler.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
+        run.tally.update(wins=0, tries=0)
+        return
+    for w, rng, env_rng in zip(run.workers, s.get("rng", []), s.get("env_rng", []), strict=False):
+        w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
+        w.env.np_random.bit_generator.state = json.loads(env_rng)
+    if "buffer" in s:
+        b, n = learner.buffer, len(s["buffer"]["obs"][0])
+        for k in REPLAY:
+            for i, saved in enumerate(s["buffer"][k]):
+                getattr(b, k)[i, :n] = saved.numpy()
+        b.size, b.ptr = n, s["buffer"]["ptr"]
 
 
 def plain(d: dict) -> dict:
@@ -1519,11 +1682,11 @@ def load_weights(agent: SAC, state: dict, args: Args, path: str, flag: str):
         agent.normalizer.add_prior(stats["mean"], stats["std"], args.init_prior_count)
 
 
-def restore(learner, state: dict, path: str, flag: str):
-    """learner.load_state_dict, or exit 2 with one line if the checkpoint does not fit these networks
-    (written by another version of the script, say)."""
+def restore(run: Run, state: dict, path: str, flag: str):
+    """load_state, or exit 2 with one line if the checkpoint does not fit these networks (written by
+    another version of the script, say)."""
     try:
-        learner.load_state_dict(state)
+        load_state(run, state)
     except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
         checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
 
@@ -1566,7 +1729,7 @@ def args_with_blocks_of(args: Args, given: set[str], state: dict, path: str, fla
 
 
 # ------------------------------------------------------------------------------------------------
-# Outputs (plumbing; SPEC §10)
+# Outputs (plumbing; SPEC §10): progress.csv, TensorBoard, console, --eval-only results and videos
 # ------------------------------------------------------------------------------------------------
 class Logger:
     """progress.csv (one row per epoch) and TensorBoard scalars with the same names. On resume, both are
@@ -1597,11 +1760,25 @@ class Logger:
     def add_scalars(self, row: dict):
         for k, v in row.items():
             if k != "epoch":
-                self.writer.add_scalar(k, v, row["epoch"])
+                self.writer.add_scalar(tensorboard_tag(k), v, row["epoch"])
         self.writer.flush()
 
     def close(self):
         self.writer.close()
+
+
+def tensorboard_tag(column: str) -> str:
+    """A progress.csv column's TensorBoard name, grouped: eval/, losses/, graph/, time/, charts/, and
+    sampler/ for the goal sampler's columns (whatever the others are not)."""
+    if column == "global_sr" or (column.startswith("sr_") and column != "sr_classes"):
+        return f"eval/{column}"
+    if column in LOSSES:
+        return f"losses/{column}"
+    if column.startswith("encounters_") or column in ("agent_nodes", "agent_edges", "sr_classes"):
+        return f"graph/{column}"
+    if column.startswith("time_") or column == "steps_per_second":
+        return f"time/{column}"
+    return f"charts/{column}" if column in ("goals", "segments", "env_steps", "train_success") else f"sampler/{column}"
 
 
 def write_csv(path: Path, rows: list[dict]):
@@ -1683,26 +1860,26 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
     for key in ("buffer", "rng", "env_rng"):  # evaluation needs no replay, and draws from its own seeds
         state.pop(key, None)
     args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
-    learner = Learner(args, device)
+    run = Run(args, device)
     paper = state.get("format") == "paper"
     if paper:  # networks and normalizer are all it holds
-        load_weights(learner.agent, state, args, args.checkpoint, "--checkpoint")
+        load_weights(run.learner.agent, state, args, args.checkpoint, "--checkpoint")
     else:
-        restore(learner, state, args.checkpoint, "--checkpoint")
-    for w in learner.workers:  # the evaluation's own seeds, not the run's
+        restore(run, state, args.checkpoint, "--checkpoint")
+    for w in run.workers:  # the evaluation's own seeds, not the run's
         w.rng = np.random.default_rng(args.seed + w.index)
         w.env.reset(seed=args.seed + w.index)
     video = {} if args.capture_video and rank() == 0 else None
     t = time.perf_counter()
-    sr = learner.evaluate(video, oracle_planner(args) if args.plan_on == "oracle" else None)
+    sr = evaluate(run, video, oracle_planner(args) if args.plan_on == "oracle" else None)
     if rank() > 0:
         return 0
     checkpoint = Path(args.checkpoint).resolve()
-    agent = "paper" if paper else f"epoch{learner.epoch}"  # the paper's file does not say its epoch
+    agent = "paper" if paper else f"epoch{run.epoch}"  # the paper's file does not say its epoch
     planner = "_oracle" if args.plan_on == "oracle" else ""
     out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{planner}")
     result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
-                  epoch=None if paper else learner.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
+                  epoch=None if paper else run.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
     tmp = out.with_suffix(".tmp")
     try:
@@ -1712,16 +1889,16 @@ def evaluate_checkpoint(args: Args, state: dict, device) -> int:
         out.unlink(missing_ok=True)
         tmp.unlink(missing_ok=True)
         raise
-    for name in learner.classes:
+    for name in run.classes:
         print(f"{name:>6}  SR {sr[name]:.3f}")
-    who = "the paper's agent" if paper else f"epoch {learner.epoch}"
+    who = "the paper's agent" if paper else f"epoch {run.epoch}"
     print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, {who}, "
           f"sub-goals planned on the {args.plan_on}'s graph)")  # fmt: skip
     print(f"saved {out}")
     for name, frames in (video or {}).items():
         path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
         path.parent.mkdir(exist_ok=True)
-        write_video(path, frames, fps=1 / learner.workers[0].env.dt)
+        write_video(path, frames, fps=1 / run.workers[0].env.dt)
         print(f"video {path} ({len(frames)} frames)")
     return 0
 
@@ -1768,114 +1945,21 @@ class Stopper:
         return bool(all_sum(np.array([float(self.requested)]))[0] > 0)
 
 
-def stop_here(learner: Learner, state: dict | None, path: Path) -> int:
+def stop_here(run: Run, state: dict | None, path: Path) -> int:
     """Save the checkpoint a resume continues from (worker 0; None: it is saved already), say how to
     resume, exit code 130."""
     if rank() == 0:
         if state is not None:
             save_checkpoint(state, path)
-        c = state["counters"] if state is not None else dict(epoch=learner.epoch, cycle=learner.cycle)
+        c = state["counters"] if state is not None else dict(epoch=run.epoch, cycle=run.cycle)
         print(f"interrupted: checkpoint saved to {path} (epoch {c['epoch']}, cycle {c['cycle']}); "
               f"continue with --resume {path}", flush=True)  # fmt: skip
     return 130
 
 
 # ------------------------------------------------------------------------------------------------
-# Main loop
+# main (plumbing): parse, load what the flags name, then train or evaluate
 # ------------------------------------------------------------------------------------------------
-LOSSES = ("critic_loss", "actor_loss", "q", "target", "entropy")  # fixed columns, NaN before any update
-
-
-def new_tally(env_steps: int) -> dict:
-    """An epoch's running totals for its progress.csv row: segment outcomes, the last cycle's losses,
-    seconds per phase."""
-    return dict(wins=0, tries=0, losses=dict.fromkeys(LOSSES, math.nan), collect=0.0, update=0.0, eval=0.0,
-                env_steps_at_start=env_steps)  # fmt: skip
-
-
-def one_cycle(learner: Learner):
-    """Collect a cycle's segments, learn from them (replay, normalizer, semantic graph), then the cycle's
-    SAC updates (SPEC §5)."""
-    tally, t = learner.tally, time.perf_counter()
-    per_worker = learner.run_cycle()
-    learner.learn_from(per_worker)
-    segments = [s for ws in per_worker for s in ws]
-    tally["wins"] += sum(bool(s.success) for s in segments)
-    tally["tries"] += len(segments)
-    tally["collect"] += (t_update := time.perf_counter()) - t
-    tally["losses"].update(learner.train())
-    tally["update"] += time.perf_counter() - t_update
-    learner.cycle += 1
-
-
-def finish_epoch(learner: Learner, sr: dict[str, float]) -> dict:
-    """The epoch's progress.csv row (SPEC §10); the learner moves on to the next epoch."""
-    args, tally = learner.args, learner.tally
-    steps = learner.segments * args.segment_len  # all workers'
-    goals, wins, tries = all_sum(np.array([learner.goals, tally["wins"], tally["tries"]], dtype=np.float64))
-    seconds = tally["collect"] + tally["update"] + tally["eval"]
-    row = dict(
-        epoch=learner.epoch,
-        goals=int(goals),
-        segments=learner.segments,
-        env_steps=steps,
-        global_sr=sr["global"],
-        train_success=wins / max(1, tries),
-        **{f"sr_{k}": sr[k] for k in learner.classes},
-        **{f"encounters_{k}": v for k, v in learner.encounters().items()},
-        **learner.sampler_stats(),
-        agent_nodes=learner.graph.n_nodes,
-        agent_edges=learner.graph.n_edges,
-        sr_classes=len(learner.graph.sr),
-        **tally["losses"],
-        time_collect=tally["collect"],
-        time_update=tally["update"],
-        time_eval=tally["eval"],
-        time_plan_and_graph=learner.plan_seconds,
-        steps_per_second=(steps - tally["env_steps_at_start"]) / max(seconds, 1e-9),
-    )
-    row = plain(row)
-    learner.rows.append(row)
-    learner.epoch, learner.cycle = learner.epoch + 1, 0
-    learner.tally, learner.plan_seconds = new_tally(steps), 0.0
-    learner.stats.clear()
-    return row
-
-
-def train(learner: Learner, logger: Logger | None, ckpt_path: Path, stopper: Stopper) -> int:
-    """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row
-    (in that order: a row is never logged unless a checkpoint holds it)."""
-    args = learner.args
-    while learner.epoch < args.n_epochs:
-        while learner.cycle < args.n_cycles:
-            one_cycle(learner)
-            if learner.cycle == 1 or learner.cycle % max(1, args.n_cycles // 10) == 0:
-                loss = learner.tally["losses"]["critic_loss"]
-                progress(f"  epoch {learner.epoch} cycle {learner.cycle}/{args.n_cycles} | "
-                         f"nodes {learner.graph.n_nodes:,} | critic loss {loss:.3f}")  # fmt: skip
-            if stopper.agreed():
-                return stop_here(learner, learner.state_dict() if rank() == 0 else None, ckpt_path)
-        before_eval = learner.state_dict() if world() == 1 else None  # cheap: views of the live tensors
-        t = time.perf_counter()
-        try:
-            with stopper.abortable(allowed=before_eval is not None):
-                sr = learner.evaluate()
-        except KeyboardInterrupt:
-            return stop_here(learner, before_eval, ckpt_path)
-        learner.tally["eval"] = time.perf_counter() - t
-        row = finish_epoch(learner, sr)
-        if logger is not None:
-            save_checkpoint(learner.state_dict(), ckpt_path)
-            logger.log(row)
-        per_class = " ".join(f"{k} {sr[k]:.2f}" for k in learner.classes)
-        progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
-                 f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
-                 final=True)  # fmt: skip
-        if stopper.agreed():
-            return stop_here(learner, None, ckpt_path)
-    return 0
-
-
 def start_run(args: Args, state: dict | None, device, init: dict | None = None) -> int:
     """A new run folder, or the checkpoint's when resuming; then train. A new run may start from the
     networks and normalizer of `init` (--init-from)."""
@@ -1891,18 +1975,17 @@ def start_run(args: Args, state: dict | None, device, init: dict | None = None) 
             (run_dir / "config.json").write_text(json.dumps(config, indent=2))
     else:
         run_dir = Path(args.resume).resolve().parent
-    learner = Learner(args, device)
+    run = Run(args, device)
     if state is not None:
-        restore(learner, state, args.resume, "--resume")
-        progress(f"resumed {args.resume} at epoch {learner.epoch}, cycle {learner.cycle}", final=True)
+        restore(run, state, args.resume, "--resume")
+        progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
     elif init is not None:
-        load_weights(learner.agent, init, args, args.init_from, "--init-from")
+        load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
         progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
-    logger = Logger(run_dir, learner.rows, resumed=state is not None) if rank() == 0 else None
-    progress(f"run folder {run_dir} | {args.n_blocks} blocks | VDS goal sampler | {learner.n_workers} "
-             f"worker(s) on {device}", final=True)  # fmt: skip
+    logger = Logger(run_dir, run.rows, resumed=state is not None) if rank() == 0 else None
+    progress(f"run folder {run_dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
     try:
-        return train(learner, logger, run_dir / "checkpoint.pt", Stopper(run_dir / "checkpoint.pt.tmp"))
+        return train_loop(run, logger, run_dir / "checkpoint.pt", Stopper(run_dir / "checkpoint.pt.tmp"))
     finally:
         if logger is not None:
             logger.close()

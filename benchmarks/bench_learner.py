@@ -105,11 +105,12 @@ def main():
     torch.manual_seed(0)
     n = args.n_blocks
     cfg = gh.Args(n_blocks=n, n_cycles=5, seed=0)
-    learner = gh.Learner(cfg, torch.device("cpu"))
+    run = gh.Run(cfg, torch.device("cpu"))
+    learner = run.learner
     # Fill the replay with real segments so that the batch is realistic.
-    (w,) = learner.workers
+    (w,) = run.workers
     goal = int(gh.og.to_mask(w.env.goal))
-    learner.learn_from([[learner.run_segments([w], [gh.Request(goal, False)])[0] for _ in range(30)]])
+    learner.learn_from([[gh.run_segments(learner.agent, [w], [gh.Request(goal, False)])[0] for _ in range(30)]])
     rng = np.random.default_rng(0)
     batch = learner.buffer.sample(256, [rng], 0.8, "final")
     gnn_ms = median_ms(lambda: learner.agent.update(batch), args.repeats)
@@ -128,15 +129,14 @@ def main():
 
     g = synthetic_graph()
     pairs = rng.integers(g.n_nodes, size=(40, 2))
-    safest = [median_ms(lambda s=s, e=e: g.safest_path(s, e, rng), 1, warmup=0) for s, e in pairs]
-    kshort = [median_ms(lambda s=s, e=e: g.k_shortest_paths(s, e, 5), 1, warmup=0) for s, e in pairs[:20]]
-    lengths = [len(g.safest_path(int(s), int(e), rng) or []) for s, e in pairs]
+    safest = [median_ms(lambda s=s, e=e: gh.safest_path(g, s, e, rng), 1, warmup=0) for s, e in pairs]
+    kshort = [median_ms(lambda s=s, e=e: gh.k_shortest_paths(g, s, e, 5), 1, warmup=0) for s, e in pairs[:20]]
+    lengths = [len(gh.safest_path(g, int(s), int(e), rng) or []) for s, e in pairs]
 
     learner.plan_seconds = 0.0
     t0 = time.perf_counter()
     for _ in range(cfg.n_cycles):
-        learner.learn_from(learner.run_cycle())
-        learner.train()
+        gh.one_cycle(run)  # collect, learn_from, the SAC updates
     cycle_s = (time.perf_counter() - t0) / cfg.n_cycles
     share = learner.plan_seconds / cfg.n_cycles / cycle_s
 

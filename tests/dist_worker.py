@@ -36,26 +36,27 @@ def main(out: Path, num_envs: int):
     device = gh.init_workers(args)
     r = gh.rank()
     torch.manual_seed(args.seed + r)
-    learner = gh.Learner(args, device)  # parameters broadcast from worker 0 here
+    run = gh.Run(args, device)  # parameters broadcast from worker 0 here
+    learner = run.learner
     nets = ("actor", "critic")
     initial = {k: {n: t.clone() for n, t in getattr(learner.agent, k).state_dict().items()} for k in nets}
     sac = gh.SAC(args, 55, device)  # the fixed-batch update, on a copy: the learner's cycles start from `initial`
     for k in nets:
         getattr(sac, k).load_state_dict(initial[k])
     sac.critic_target.load_state_dict(initial["critic"])
-    mine = [fixed_batch(100 + w.index) for w in learner.workers]
+    mine = [fixed_batch(100 + w.index) for w in run.workers]
     sac.update({k: np.concatenate([b[k] for b in mine]) for k in mine[0]})
     after_one = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in nets}
     grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in nets}
     first_cycle, first_normalizer = [], None
     for cycle in range(args.n_cycles):
-        learner.learn_from(learner.run_cycle())
+        learner.learn_from(gh.run_cycle(run))
         if cycle == 0:  # each worker's segments: goal, start and final configs, success; the statistics
             first_cycle = [[(gh.og.to_mask(s.g), s.start, s.final, s.success) for s in w.segments]
-                           for w in learner.workers]  # fmt: skip
+                           for w in run.workers]  # fmt: skip
             norm = learner.agent.normalizer
             first_normalizer = torch.tensor(np.concatenate([norm.sum, norm.sumsq, [norm.count]]))
-        learner.train()
+        learner.train([w.rng for w in run.workers], run.sampler.after_update)
     params = torch.cat(
         [p.detach().reshape(-1) for m in (learner.agent.actor, learner.agent.critic) for p in m.parameters()]
     )
@@ -69,7 +70,7 @@ def main(out: Path, num_envs: int):
         first_normalizer=first_normalizer,
         params=params,
         graph=learner.graph.state_dict(),
-        internalization=torch.tensor(learner.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
+        internalization=torch.tensor(run.sampler.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
         normalizer=torch.tensor(np.concatenate([norm.sum, norm.sumsq, [norm.count]])),
         encountered=torch.tensor(sorted(learner.encountered)),
         segments=learner.segments,

@@ -202,16 +202,16 @@ def test_per_worker_counts_are_summed_in_the_logs(tmp_path):
 
 
 def test_evaluation_goals_are_split_between_the_workers_of_a_process():
-    learner = gh.Learner(gh.Args(n_blocks=3, num_envs=2, eval_goals_per_class=3, segment_len=4, stable_steps=2,
-                                 buffer_size=400), torch.device("cpu"))  # fmt: skip
+    two = gh.Run(gh.Args(n_blocks=3, num_envs=2, eval_goals_per_class=3, segment_len=4, stable_steps=2,
+                         buffer_size=400), torch.device("cpu"))  # fmt: skip
     resets = []
-    for w in learner.workers:
+    for w in two.workers:
         reset = w.env.reset
         w.env.reset = lambda w=w, reset=reset, **kw: resets.append(w.index) or reset(**kw)
-    sr = learner.evaluate()
-    classes = len(learner.classes)
+    sr = gh.evaluate(two)
+    classes = len(two.classes)
     assert resets.count(0) == 2 * classes and resets.count(1) == classes  # goal i of each class to worker i mod 2
-    assert set(sr) == {*learner.classes, "global"}
+    assert set(sr) == {*two.classes, "global"}
 
 
 @pytest.mark.parametrize("num_envs", ["1", "3"])

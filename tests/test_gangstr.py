@@ -38,6 +38,15 @@ def read_rows(run_dir: Path):
         return list(csv.DictReader(f))
 
 
+def tensorboard_scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar TensorBoard shows for a run folder: tag -> its (step, value) events."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: PLC0415
+
+    events = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})  # 0: keep every event
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
 # ------------------------------------------------------------------------------------------------
 # 1. Smoke: the whole loop writes a run folder
 # ------------------------------------------------------------------------------------------------
@@ -52,6 +61,17 @@ def test_tiny_run_collects_updates_evaluates_logs_and_checkpoints(tmp_path, n_bl
     (row,) = read_rows(run_dir)
     assert int(row["env_steps"]) == 2 * 3 * 10
     assert 0.0 <= float(row["global_sr"]) <= 1.0 and f"sr_{list(og.evaluation_classes(n_blocks))[-1]}" in row
+    # TensorBoard: every progress.csv column but the epoch (its step) exactly once, under its group.
+    scalars = tensorboard_scalars(run_dir)
+    columns = [c for c in row if c != "epoch"]
+    groups = ("eval", "losses", "graph", "time", "charts", "sampler")
+    assert Counter(tag.split("/", 1)[-1] for tag in scalars) == Counter(columns)
+    assert sorted(scalars) == sorted(gh.tensorboard_tag(c) for c in columns)
+    assert all(tag.split("/")[0] in groups and tag.count("/") == 1 for tag in scalars)
+    assert {tag.split("/")[0] for tag in scalars} == set(groups)
+    for c in columns:
+        ((step, value),) = scalars[gh.tensorboard_tag(c)]
+        assert step == 0 and value == pytest.approx(float(row[c]), rel=1e-6, nan_ok=True), c
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert state["counters"]["epoch"] == 1 and state["args"]["n_blocks"] == n_blocks
     assert "SR" in out.stdout and "epoch   0" in out.stdout
@@ -346,11 +366,11 @@ class ScriptedConfigs:
 @pytest.mark.parametrize("switch, stable", [(1, True), (3, True), (4, False), (6, False)])
 def test_a_segment_is_stable_only_if_its_final_config_held_over_the_last_stable_steps(switch, stable):
     args = gh.Args(n_blocks=3, segment_len=6, stable_steps=3)
-    learner = gh.Learner(args, torch.device("cpu"))
+    run = gh.Run(args, torch.device("cpu"))
     apart, pair = og.make_config(3), og.make_config(3, close=[(0, 1)])
-    (w,) = learner.workers
+    (w,) = run.workers
     w.env = ScriptedConfigs(apart, pair, switch)
-    (seg,) = learner.run_segments([w], [gh.Request(int(og.to_mask(pair)), deterministic=True)])
+    (seg,) = gh.run_segments(run.learner.agent, [w], [gh.Request(int(og.to_mask(pair)), deterministic=True)])
     assert seg.obs.shape == (7, 55) and seg.ag.shape == (7, 9) and seg.actions.shape == (6, 4)
     assert seg.stable == stable  # the config after step 3 must already be the final one
     assert seg.success  # success reads the final config only
@@ -390,7 +410,7 @@ def test_safest_path_is_the_most_reliable_path_of_a_brute_force_enumeration(seed
     g = random_graph(7, 0.35, seed)
     for s, t in itertools.permutations(range(7), 2):
         paths = all_simple_paths(g, s, t)
-        found = g.safest_path(s, t, np.random.default_rng(seed))
+        found = gh.safest_path(g, s, t, np.random.default_rng(seed))
         if not paths:
             assert found is None
             continue
@@ -403,7 +423,7 @@ def test_yen_k_shortest_paths_match_a_brute_force_enumeration(seed):
     g = random_graph(7, 0.35, seed)
     for s, t in itertools.permutations(range(7), 2):
         paths = all_simple_paths(g, s, t)
-        found = g.k_shortest_paths(s, t, 5)
+        found = gh.k_shortest_paths(g, s, t, 5)
         assert len(found) == min(5, len(paths))
         assert all(p in paths for p in found) and len({tuple(p) for p in found}) == len(found)
         assert sorted(len(p) for p in found) == sorted(len(p) for p in paths)[: len(found)]
@@ -423,7 +443,7 @@ def test_equally_safe_paths_are_chosen_uniformly_and_a_less_safe_one_never():
     optimal = {tuple(p) for p in all_simple_paths(g, 0, 5) if math.isclose(path_sr(g, p), best)}
     assert len(optimal) == 4  # all but 0 -> 6 -> 5
     rng = np.random.default_rng(0)
-    drawn = [tuple(g.safest_path(0, 5, rng)) for _ in range(2000)]
+    drawn = [tuple(gh.safest_path(g, 0, 5, rng)) for _ in range(2000)]
     paths, counts = zip(*Counter(drawn).items(), strict=True)
     assert set(paths) == optimal
     assert uniform_pvalue(counts) > 1e-3  # SPEC §6: uniform among the safest
@@ -450,7 +470,7 @@ def test_the_k_shortest_paths_are_the_shortest_paths_of_k_different_shapes(seed)
         shortest_of_shape = {}
         for p in sorted(paths, key=len):
             shortest_of_shape.setdefault(tuple(cls[e] for e in zip(p, p[1:], strict=False)), len(p))
-        found = g.k_shortest_paths(s, t, 5)
+        found = gh.k_shortest_paths(g, s, t, 5)
         shapes = [tuple(cls[e] for e in zip(p, p[1:], strict=False)) for p in found]
         assert all(p in paths for p in found) and len(set(shapes)) == len(found)  # SPEC §6: k shapes
         if len(paths) <= gh.YEN_PATHS_PER_SHAPE * 5:  # within Yen's bound: exactly the k shortest shapes
@@ -476,7 +496,7 @@ def test_the_k_shortest_paths_on_real_configs_are_the_shortest_of_different_shap
     shortest_of_shape = {}
     for p in sorted(all_simple_paths(g, s, t), key=len):
         shortest_of_shape.setdefault(shape([g.masks[i] for i in p]), len(p))
-    found = g.k_shortest_paths(apart, chain, 5)
+    found = gh.k_shortest_paths(g, apart, chain, 5)
     assert len({shape(p) for p in found}) == len(found) == 5
     assert sorted(len(p) for p in found) == sorted(shortest_of_shape.values())[:5]
 
@@ -489,11 +509,11 @@ def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_con
         g._add_edge(u, u + 1, len(g.sr))
         g.sr.append(0.9)
     rng = np.random.default_rng(0)
-    assert g.plan(0, 11, rng, explore=False) == [0, 9, 10, 11]
-    assert g.plan(0, 2, rng, explore=False) == [0, 1, 2]
-    assert g.plan(5, 0, rng, explore=False) == [5, 0]  # unreachable
-    assert g.plan(3, 3, rng, explore=False) == [3, 3]  # start == goal
-    assert g.plan(0, 99, rng, explore=False) == [0, 99]  # unknown goal
+    assert gh.sample_path(g, 0, 11, rng, explore=False) == [0, 9, 10, 11]
+    assert gh.sample_path(g, 0, 2, rng, explore=False) == [0, 1, 2]
+    assert gh.sample_path(g, 5, 0, rng, explore=False) == [5, 0]  # unreachable
+    assert gh.sample_path(g, 3, 3, rng, explore=False) == [3, 3]  # start == goal
+    assert gh.sample_path(g, 0, 99, rng, explore=False) == [0, 99]  # unknown goal
 
 
 def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():
@@ -504,10 +524,10 @@ def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():
     g.update(c01, stack, target=stack, success=True)
     rng = np.random.default_rng(0)
     expected = [apart, c01, stack]
-    assert g.safest_path(apart, stack, rng) == expected
-    assert g.k_shortest_paths(apart, stack, 5)[0] == expected
+    assert gh.safest_path(g, apart, stack, rng) == expected
+    assert gh.k_shortest_paths(g, apart, stack, 5)[0] == expected
     for explore in (False, True):
-        assert g.plan(apart, stack, rng, explore) == expected
+        assert gh.sample_path(g, apart, stack, rng, explore) == expected
 
 
 def test_graph_state_round_trips_through_a_checkpoint(tmp_path):
@@ -581,11 +601,7 @@ def stop_then_resume(runs: Path, sig: signal.Signals, at: str, delay: float, **p
 
 def tensorboard_rows(run: Path) -> list[tuple[int, float]]:
     """The (epoch, global SR) pairs TensorBoard shows for a run folder."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: PLC0415
-
-    events = EventAccumulator(str(run))
-    events.Reload()
-    return [(e.step, e.value) for e in events.Scalars("global_sr")]
+    return tensorboard_scalars(run)[gh.tensorboard_tag("global_sr")]
 
 
 @pytest.mark.parametrize(
@@ -707,10 +723,10 @@ def test_an_unreadable_checkpoint_exits_2_with_one_line(tmp_path, content):
     assert out.returncode == 2 and str(bad) in out.stderr and len(out.stderr.strip().splitlines()) == 1
 
 
-def saved_learner(path: Path, module=gh, **fields) -> dict:
-    """A fresh 3-block learner's checkpoint at path (no training needed to test loading rules)."""
-    learner = module.Learner(module.Args(n_blocks=3, buffer_size=400, runs_dir=str(path.parent), **fields), "cpu")
-    state = learner.state_dict()
+def saved_run(path: Path, module=gh, **fields) -> dict:
+    """A fresh 3-block run's checkpoint at path (no training needed to test loading rules)."""
+    run = module.Run(module.Args(n_blocks=3, buffer_size=400, runs_dir=str(path.parent), **fields), "cpu")
+    state = module.save_state(run)
     module.save_checkpoint(state, path)
     return state
 
@@ -734,9 +750,9 @@ def test_a_file_that_is_not_this_scripts_checkpoint_gets_one_line_saying_what_it
     elif content == "lp":
         import lp_baseline  # noqa: PLC0415
 
-        saved_learner(path, lp_baseline)
+        saved_run(path, lp_baseline)
     else:
-        state = saved_learner(path)  # as written before the environment had a version
+        state = saved_run(path)  # as written before the environment had a version
         torch.save({k: v for k, v in state.items() if k not in ("env_version", "script")}, path)
     for argv in (["--resume", str(path)], ["--eval-only", "--checkpoint", str(path)]):
         out = run_script(*argv, runs_dir=tmp_path)
@@ -746,7 +762,7 @@ def test_a_file_that_is_not_this_scripts_checkpoint_gets_one_line_saying_what_it
 
 @pytest.mark.parametrize("mode", ["--resume", "--eval-only"])
 def test_flags_that_contradict_the_checkpoint_exit_2_naming_each(tmp_path, mode):
-    state = saved_learner(tmp_path / "checkpoint.pt", sp_ratio=0.3)
+    state = saved_run(tmp_path / "checkpoint.pt", sp_ratio=0.3)
     state["counters"]["epoch"] = 1  # a finished epoch: resuming to --n-epochs 1 has nothing to do
     gh.save_checkpoint(state, tmp_path / "checkpoint.pt")
     where = ["--resume", str(tmp_path / "checkpoint.pt"), "--n-epochs", "1"] if mode == "--resume" else [
@@ -774,8 +790,8 @@ def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
 
 @pytest.mark.parametrize("flag", ["--resume", "--checkpoint"])
 def test_a_checkpoint_from_other_networks_exits_2_naming_the_mismatch(tmp_path, flag):
-    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    state = learner.state_dict()
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    state = gh.save_state(run)
     state["actor"]["mean.weight"] = state["actor"].pop("head.out.weight")  # as an older version named it
     path = tmp_path / "other.pt"
     torch.save(state, path)
@@ -824,8 +840,8 @@ def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path
 
 
 def test_a_second_evaluation_of_a_checkpoint_is_saved_beside_the_first_never_over_it(tmp_path):
-    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--eval-goals-per-class", "1", "--threads", "1"]
     for _ in range(2):
         assert run_script(*argv, runs_dir=tmp_path).returncode == 0
@@ -834,8 +850,8 @@ def test_a_second_evaluation_of_a_checkpoint_is_saved_beside_the_first_never_ove
 
 
 def test_capture_video_without_a_display_or_gl_backend_exits_2_saying_what_to_install(tmp_path):
-    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "PYOPENGL_PLATFORM")}
     cmd = [sys.executable, "gangstr_hme.py", "--eval-only", "--checkpoint", str(tmp_path / "agent.pt"),
            "--capture-video", "--runs-dir", str(tmp_path)]  # fmt: skip

@@ -148,16 +148,16 @@ def test_with_no_stepping_stone_left_the_partner_proposes_nothing(sp):
 # 2. The social cycle, step by step, with a scripted stand-in for the policy
 # ------------------------------------------------------------------------------------------------
 class ScriptedWorld:
-    """Replaces the policy and the physics of the learner's one worker: a segment toward goal g succeeds
+    """Replaces the policy and the physics of the run's one worker: a segment toward goal g succeeds
     iff script(g, deterministic) says so, and the world's config becomes g on success. Every reset goes
     back to `start`."""
 
-    def __init__(self, learner, monkeypatch, start, script):
+    def __init__(self, run, monkeypatch, start, script):
         self.config, self.start, self.script, self.log = start, start, script, []
-        monkeypatch.setattr(learner.workers[0].env, "reset", self.reset)
+        monkeypatch.setattr(run.workers[0].env, "reset", self.reset)
         monkeypatch.setattr(gh, "current_config", lambda env: self.config)
-        monkeypatch.setattr(learner, "run_segments", lambda workers, requests: [self.segment(learner.args, *r[:2])
-                                                                                for r in requests])  # fmt: skip
+        monkeypatch.setattr(gh, "run_segments", lambda agent, workers, requests: [self.segment(run.args, *r[:2])
+                                                                                  for r in requests])  # fmt: skip
 
     def reset(self, **kw):
         self.config = self.start
@@ -174,28 +174,28 @@ class ScriptedWorld:
         return gh.Segment(zeros, ag, goal, np.zeros((args.segment_len, 4), np.float32), success, True)
 
 
-def hme_learner(**kw):
+def hme_run(**kw):
     args = dict(n_blocks=N, sp_ratio=1.0, segment_len=4, stable_steps=2) | kw
-    return gh.Learner(gh.Args(**args), torch.device("cpu"))
+    return gh.Run(gh.Args(**args), torch.device("cpu"))
 
 
-def run(learner, program) -> list:
-    """One cycle of the learner's one worker running `program` (a cycle program such as
-    learner.social_cycle), its pairs merged at the end as after any cycle; the cycle's segments."""
-    (w,) = learner.workers
-    w.left, w.segments = learner.args.n_segments, []
-    learner.drive({w: program(w)})
-    learner.after_cycle()
+def one_cycle_of(run, program) -> list:
+    """One cycle of the run's one worker running `program` (a cycle program such as
+    run.sampler.social_cycle), its pairs merged at the end as after any cycle; the cycle's segments."""
+    (w,) = run.workers
+    w.left, w.segments = run.args.n_segments, []
+    gh.drive(run.learner.agent, {w: program(w)})
+    run.sampler.after_cycle()
     return w.segments
 
 
 def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
-    learner = hme_learner()
+    run = hme_run()
     # The agent has made every move from "all apart" (to each close pair and each 2-stack) and nothing
     # since: those configs are its frontier, "all apart" is not.
-    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
-    frontiers = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
-    assert set(learner.sp.stepping_stones(learner.graph).tolist()) == frontiers
+    run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    frontiers = set(og.to_mask(run.sampler.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
+    assert set(run.sampler.sp.stepping_stones(run.learner.graph).tolist()) == frontiers
     beyond_tries = []
 
     def script(goal, deterministic):
@@ -204,9 +204,9 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
         beyond_tries.append(goal)
         return len(beyond_tries) % 2 == 1  # beyond goals: success, failure, success, failure, ...
 
-    world = ScriptedWorld(learner, monkeypatch, APART, script)
-    segments = run(learner, learner.social_cycle)
-    assert len(segments) == learner.args.n_segments == 10
+    world = ScriptedWorld(run, monkeypatch, APART, script)
+    segments = one_cycle_of(run, run.sampler.social_cycle)
+    assert len(segments) == run.args.n_segments == 10
     log = world.log
     i, episodes, failed = 0, 0, []
     while i < len(log):
@@ -219,7 +219,7 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
         while i < len(log) and log[i] != "reset":
             beyond, mode, ok = log[i]
             assert mode == "stoch"  # beyond goals: one segment with the stochastic policy
-            nbrs = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(start, N))).tolist())
+            nbrs = set(og.to_mask(run.sampler.sp.oracle.neighbours(og.from_mask(start, N))).tolist())
             assert beyond in nbrs  # adjacent to where the attempt starts: chaining
             i += 1
             if ok:
@@ -227,36 +227,36 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
             else:
                 failed.append((start, beyond))  # a failure is internalized
                 assert i == len(log) or log[i] == "reset"  # ... and the episode ends
-    assert episodes >= 2 and learner.internalization_buffer == list(dict.fromkeys(failed))  # once each
-    assert learner.stats["sp_frontier_C1"] + learner.stats["sp_frontier_S2"] == episodes
+    assert episodes >= 2 and run.sampler.internalization_buffer == list(dict.fromkeys(failed))  # once each
+    assert run.sampler.stats["sp_frontier_C1"] + run.sampler.stats["sp_frontier_S2"] == episodes
 
 
 def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_and_stores_nothing(monkeypatch):
-    learner = hme_learner(strategy="frontier")
-    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
-    frontiers = set(og.to_mask(learner.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
+    run = hme_run(strategy="frontier")
+    run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    frontiers = set(og.to_mask(run.sampler.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
     tries = []
 
     def script(goal, deterministic):
         tries.append(goal)
         return len(tries) % 3 != 0  # every third frontier leg fails
 
-    world = ScriptedWorld(learner, monkeypatch, APART, script)
-    assert len(run(learner, learner.social_cycle)) == 10
+    world = ScriptedWorld(run, monkeypatch, APART, script)
+    assert len(one_cycle_of(run, run.sampler.social_cycle)) == 10
     # SPEC §7, --strategy frontier: reset, the frontier goal along the safest path with the
     # deterministic policy (here one small step), then reset again; no beyond goal, nothing stored.
     assert world.log[0::2] == ["reset"] * 10
     assert all(goal in frontiers and mode == "det" for goal, mode, _ in world.log[1::2])
-    assert not learner.internalization_buffer
-    assert learner.stats["sp_frontier_C1"] + learner.stats["sp_frontier_S2"] == 10
-    assert not any(k.startswith("sp_beyond") for k in learner.stats)
+    assert not run.sampler.internalization_buffer
+    assert run.sampler.stats["sp_frontier_C1"] + run.sampler.stats["sp_frontier_S2"] == 10
+    assert not any(k.startswith("sp_beyond") for k in run.sampler.stats)
 
 
 def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset_until_reached(monkeypatch, sp):
-    learner = hme_learner(strategy="beyond")
-    learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
-    stones = brute_force_stones(sp, learner.graph) & reachable(learner.graph, APART)
-    agent_edges = {(learner.graph.masks[u], learner.graph.masks[v]) for u, v, _ in learner.graph.edge_log}
+    run = hme_run(strategy="beyond")
+    run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    stones = brute_force_stones(sp, run.learner.graph) & reachable(run.learner.graph, APART)
+    agent_edges = {(run.learner.graph.masks[u], run.learner.graph.masks[v]) for u, v, _ in run.learner.graph.edge_log}
     neighbours = {m: og.to_mask(sp.oracle.neighbours(og.from_mask(m, N))).tolist() for m in stones}
     beyond = {c for m in stones for c in neighbours[m] if (m, c) not in agent_edges}
     tries = []
@@ -265,8 +265,8 @@ def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset
         tries.append(goal)
         return len(tries) % 3 == 0  # each goal is reached at the third attempt
 
-    world = ScriptedWorld(learner, monkeypatch, APART, script)
-    assert len(run(learner, learner.social_cycle)) == 10
+    world = ScriptedWorld(run, monkeypatch, APART, script)
+    assert len(one_cycle_of(run, run.sampler.social_cycle)) == 10
     # SPEC §7, --strategy beyond: reset, one goal beyond a frontier the agent is not shown, attempted
     # directly with the stochastic policy, again and again without reset until reached; nothing stored.
     episodes = " ".join("R" if e == "reset" else ("+" if e[2] else "-") for e in world.log).split("R")[1:]
@@ -274,32 +274,32 @@ def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset
     goals = [[e[0] for e in world.log[i + 1 : i + 4]] for i in (0, 4, 8)]
     assert all(len(set(g)) == 1 and g[0] in beyond for g in goals)  # one goal per episode, beyond a frontier
     assert all(e == "reset" or e[1] == "stoch" for e in world.log)
-    assert not learner.internalization_buffer
-    assert not any(k.startswith("sp_frontier") for k in learner.stats)
-    assert sum(v for k, v in learner.stats.items() if k.startswith("sp_beyond")) == 4
+    assert not run.sampler.internalization_buffer
+    assert not any(k.startswith("sp_frontier") for k in run.sampler.stats)
+    assert sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond")) == 4
 
 
 C01_BEYOND = [M(close=[(0, 1)], above=[(0, 1)]), M(close=[(0, 1)], above=[(1, 0)]), M(close=[(0, 1), (1, 2)]),
               M(close=[(0, 1), (0, 2)])]  # fmt: skip
 
 
-def rehearsed_goals(learner, monkeypatch, cycles):
+def rehearsed_goals(run, monkeypatch, cycles):
     """The beyond goals attempted over `cycles` rehearsal cycles, every frontier reached."""
-    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)
+    world = ScriptedWorld(run, monkeypatch, APART, lambda g, det: det)
     for _ in range(cycles):
-        run(learner, learner.rehearsal_cycle)
+        one_cycle_of(run, run.sampler.rehearsal_cycle)
     return [e[0] for e in world.log if e != "reset" and e[1] == "stoch"]
 
 
 def test_a_pair_failed_again_and_again_is_stored_once_and_rehearsed_as_often_as_any_other(monkeypatch):
-    learner = hme_learner(sp_ratio=0.0)
-    learner.graph = agent_graph([(APART, C01)])
+    run = hme_run(sp_ratio=0.0)
+    run.learner.graph = agent_graph([(APART, C01)])
     failures = [C01_BEYOND[0]] * 10 + [C01_BEYOND[1]] + [C01_BEYOND[2]] * 3
     for beyond in failures:
-        learner.internalize(learner.workers[0], C01, beyond)
-    learner.after_cycle()
-    assert learner.internalization_buffer == [(C01, b) for b in C01_BEYOND[:3]]  # SPEC §7: a set
-    counts = np.unique(rehearsed_goals(learner, monkeypatch, 300), return_counts=True)[1]
+        run.sampler.internalize(run.workers[0], C01, beyond)
+    run.sampler.after_cycle()
+    assert run.sampler.internalization_buffer == [(C01, b) for b in C01_BEYOND[:3]]  # SPEC §7: a set
+    counts = np.unique(rehearsed_goals(run, monkeypatch, 300), return_counts=True)[1]
     assert len(counts) == 3 and counts.sum() == 1500  # 5 draws a cycle: frontier leg, beyond attempt
     assert uniform_pvalue(counts) > 1e-3  # uniform over pairs, not 10 : 1 : 3
 
@@ -308,13 +308,13 @@ def test_a_pair_failed_again_and_again_is_stored_once_and_rehearsed_as_often_as_
 def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypatch, rank):
     a, b, c, d = ((C01, g) for g in C01_BEYOND)
     stored = {0: [b, a, c, b], 1: [c, d, d, a]}  # each worker's failures this cycle; `a` was stored before
-    learner = hme_learner(sp_ratio=0.0, internalization_prob=0.0)
-    learner.graph = agent_graph([(APART, C01)])
-    learner.internalization_buffer = [a]
+    run = hme_run(sp_ratio=0.0, internalization_prob=0.0)
+    run.learner.graph = agent_graph([(APART, C01)])
+    run.sampler.internalization_buffer = [a]
 
     def cycle(w):
         for pair in stored[rank]:
-            learner.internalize(w, *pair)
+            run.sampler.internalize(w, *pair)
         yield from ()  # a cycle program that runs no segment
 
     local = {0: np.array([b, c]), 1: np.array([c, d])}  # what each worker keeps: its new distinct pairs
@@ -323,48 +323,48 @@ def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypa
         np.testing.assert_array_equal(rows, local[rank])
         return np.concatenate([local[0], local[1]])  # rank order
 
-    monkeypatch.setattr(learner, "autotelic_goals", cycle)
+    monkeypatch.setattr(run.sampler, "autotelic_cycle", cycle)
     monkeypatch.setattr(gh, "all_gather_rows", all_gather_rows)
-    learner.run_cycle()
+    gh.run_cycle(run)
     # The same distinct pairs in the same order on every worker (so a seeded draw agrees): the old
     # ones, then the new ones in rank order.
-    assert learner.internalization_buffer == [a, b, c, d]
+    assert run.sampler.internalization_buffer == [a, b, c, d]
     monkeypatch.setattr(gh, "all_gather_rows", lambda rows: rows)  # one worker from here on
-    counts = np.unique(rehearsed_goals(learner, monkeypatch, 200), return_counts=True)[1]
+    counts = np.unique(rehearsed_goals(run, monkeypatch, 200), return_counts=True)[1]
     assert len(counts) == 4 and uniform_pvalue(counts) > 1e-3
 
 
 def test_rehearsal_goes_to_the_stored_frontier_then_attempts_the_stored_beyond_goal(monkeypatch):
-    learner = hme_learner(sp_ratio=0.0)
-    learner.graph = agent_graph([(APART, C01)])
+    run = hme_run(sp_ratio=0.0)
+    run.learner.graph = agent_graph([(APART, C01)])
     stack = M(close=[(0, 1)], above=[(0, 1)])
-    learner.internalization_buffer = [(C01, stack)]
-    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: det)  # beyond attempts fail
-    segments = run(learner, learner.rehearsal_cycle)
+    run.sampler.internalization_buffer = [(C01, stack)]
+    world = ScriptedWorld(run, monkeypatch, APART, lambda g, det: det)  # beyond attempts fail
+    segments = one_cycle_of(run, run.sampler.rehearsal_cycle)
     assert len(segments) == 10
     # One attempt per drawn pair (no reset between frontier and beyond), then reset and draw again.
     assert world.log == ["reset", (C01, "det", True), (stack, "stoch", False)] * 5
 
 
 def test_a_partner_with_nothing_to_propose_leaves_the_cycle_autotelic(monkeypatch, sp):
-    learner = hme_learner()
+    run = hme_run()
     everything = [(int(sp.edge_heads[k]), int(sp.edge_tails[k])) for k in range(len(sp.edge_heads))]
-    learner.graph = agent_graph(everything)
-    world = ScriptedWorld(learner, monkeypatch, APART, lambda g, det: False)
-    assert len(run(learner, learner.social_cycle)) == 10
-    assert not any(k.startswith("sp_") for k in learner.stats) and not learner.internalization_buffer
+    run.learner.graph = agent_graph(everything)
+    world = ScriptedWorld(run, monkeypatch, APART, lambda g, det: False)
+    assert len(one_cycle_of(run, run.sampler.social_cycle)) == 10
+    assert not any(k.startswith("sp_") for k in run.sampler.stats) and not run.sampler.internalization_buffer
     assert all(e == "reset" or e[1] == "stoch" for e in world.log)  # autotelic goals, training policy
 
 
 def test_cycle_kinds_follow_sp_ratio_and_internalization_prob(monkeypatch):
-    learner = hme_learner(sp_ratio=0.3, internalization_prob=0.5, n_segments=1)
-    learner.graph = agent_graph([(APART, C01)])
-    learner.internalization_buffer = [(C01, M(close=[(0, 1)], above=[(0, 1)]))]
-    ScriptedWorld(learner, monkeypatch, APART, lambda g, det: False)
+    run = hme_run(sp_ratio=0.3, internalization_prob=0.5, n_segments=1)
+    run.learner.graph = agent_graph([(APART, C01)])
+    run.sampler.internalization_buffer = [(C01, M(close=[(0, 1)], above=[(0, 1)]))]
+    ScriptedWorld(run, monkeypatch, APART, lambda g, det: False)
     for _ in range(3000):
-        learner.run_cycle()
-    social = learner.stats["social_cycles"] / 3000
-    rehearsal = learner.stats["rehearsal_cycles"] / 3000
+        gh.run_cycle(run)
+    social = run.sampler.stats["social_cycles"] / 3000
+    rehearsal = run.sampler.stats["rehearsal_cycles"] / 3000
     assert abs(social - 0.3) < 4 * np.sqrt(0.3 * 0.7 / 3000)
     assert abs(rehearsal - 0.35) < 4 * np.sqrt(0.35 * 0.65 / 3000)  # half of the non-social cycles
 

@@ -216,7 +216,7 @@ def test_oracle_plans_are_shortest_paths_along_oracle_edges():
     rng = np.random.default_rng(0)
     for name, members in og.evaluation_classes(3).items():
         for goal in members:
-            path = planner.plan(start, int(og.to_mask(goal)), rng, explore=False)
+            path = gh.sample_path(planner, start, int(og.to_mask(goal)), rng, explore=False)
             assert len(path) - 1 == hops[oracle.index(goal)], name
             for a, b in zip(path, path[1:], strict=False):
                 assert og.to_mask(oracle.neighbours(og.from_mask(a, 3))).tolist().count(b) == 1
@@ -288,23 +288,23 @@ def test_a_run_started_with_init_from_resumes_into_the_uninterrupted_run(tmp_pat
 
 
 def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its_count(tmp_path):
-    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    learner.agent.normalizer.update(np.random.default_rng(0).normal(size=(70, 55)))
-    learner.graph.add_config(int(og.to_mask(og.make_config(3))))
-    learner.epoch = 4
-    gh.save_checkpoint(learner.state_dict(), tmp_path / "ours.pt")
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    run.learner.agent.normalizer.update(np.random.default_rng(0).normal(size=(70, 55)))
+    run.learner.graph.add_config(int(og.to_mask(og.make_config(3))))
+    run.epoch = 4
+    gh.save_checkpoint(gh.save_state(run), tmp_path / "ours.pt")
     state = gh.load_checkpoint(str(tmp_path / "ours.pt"), "--init-from")
-    fresh = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, seed=1), torch.device("cpu"))
-    gh.load_weights(fresh.agent, state, fresh.args, "ours.pt", "--init-from")
-    mine, theirs = fresh.agent, learner.agent
+    fresh = gh.Run(gh.Args(n_blocks=3, buffer_size=400, seed=1), torch.device("cpu"))
+    gh.load_weights(fresh.learner.agent, state, fresh.args, "ours.pt", "--init-from")
+    mine, theirs = fresh.learner.agent, run.learner.agent
     assert mine.normalizer.count == 70 and np.array_equal(mine.normalizer.mean, theirs.normalizer.mean)
     assert all(torch.equal(p, q) for p, q in zip(mine.actor.parameters(), theirs.actor.parameters(), strict=True))
-    assert fresh.graph.n_nodes == 0 and fresh.epoch == 0  # the rest is new
+    assert fresh.learner.graph.n_nodes == 0 and fresh.epoch == 0  # the rest is new
 
 
 def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
-    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(learner.state_dict(), tmp_path / "agent.pt")
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
+    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--plan-on", "oracle",
             "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
     out = run_script(*argv, runs_dir=tmp_path)
