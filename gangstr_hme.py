@@ -1165,13 +1165,11 @@ class Learner:
     the semantic graph with its success rates (the paper's G_s and PE), and the configs met."""
 
     def __init__(self, args: Args, device):
-        self.args, n = args, args.n_blocks
-        self.agent = SAC(args, BODY + PER_BLOCK * n, device)
-        self.graph = SemanticGraph(n, args)
+        self.args, obs_dim, goal_dim = args, BODY + PER_BLOCK * args.n_blocks, og.config_dim(args.n_blocks)
+        self.agent = SAC(args, obs_dim, device)
+        self.graph = SemanticGraph(args.n_blocks, args)
         seg_capacity = max(1, args.buffer_size // args.segment_len)
-        self.buffer = ReplayBuffer(
-            args.num_envs, seg_capacity, args.segment_len, BODY + PER_BLOCK * n, og.config_dim(n)
-        )
+        self.buffer = ReplayBuffer(args.num_envs, seg_capacity, args.segment_len, obs_dim, goal_dim)
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.segments = 0  # every worker's, so far
         self.plan_seconds = 0.0  # planning + graph updates this epoch, for the speed report

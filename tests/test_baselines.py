@@ -2,6 +2,7 @@
 (SPEC §8): the LP arithmetic, the VDS scoring, and that nothing but the goal sampler differs."""
 
 import csv
+import difflib
 import re
 import subprocess
 import sys
@@ -41,21 +42,22 @@ def test_baseline_runs_end_to_end(tmp_path, script, n_blocks):
 # 2. Only the goal sampler differs
 # ------------------------------------------------------------------------------------------------
 BANNER = "# " + "-" * 96 + "\n"
+GOAL_SAMPLER = [  # the goal sampler's three places in a script, each found once
+    r"(?s)\A.*?(?=^from __future__)",  # 1. the header comment and module docstring
+    r"(?s)^    # --- the goal sampler: .*?(?=^    # --- )",  # 2. its Args group
+    rf"(?s)^{BANNER}# The goal sampler[^\n]*\n{BANNER}.*?(?=^{BANNER})",  # 3. its section
+]
 
 
 def without_goal_sampler(text: str) -> str:
-    """The file minus its goal sampler: module docstring, the sampler's Args fields and checks, its
-    classes, the Learner's sampler block, and the sampler-specific lines of training and logging."""
-    text = text[text.index("from __future__") :]
-    text = re.sub(r'exp_name: str = "\w+"', "", text)
-    text = re.sub(r"(?s)(n_blocks: int = 5\n.*?\n)(.*?)(    n_epochs: int)", r"\1\3", text)
-    text = re.sub(r"(?s)STRATEGIES = .*?\n\n\n", "", text)
-    text = re.sub(r"(?s)def check_sampler_args.*?(?=" + re.escape(BANNER) + ")", "", text)
-    sampler = r"# (HME: the social partner|The goal sampler).*?(?=" + re.escape(BANNER) + "# Workers and rollouts)"
-    text = re.sub(r"(?s)" + re.escape(BANNER) + sampler, "", text)
-    text = re.sub(r"(?s)    # --- the goal sampler.*?(?=    # --- learning)", "", text)
-    text = re.sub(r".*info.update\(self.train_vds\(\)\).*\n", "", text)
-    return re.sub(r'.*f"run folder.*\n', "", text)
+    """The file minus its goal sampler, which has one home in each script: (1) the module docstring and
+    header comment (all before `from __future__`), (2) the Args group from its `    # --- the goal
+    sampler: ... ---` line to the next group's, (3) the section from the banner `# The goal sampler...`
+    to the next banner. Three substitutions, each matching once; nothing else."""
+    for pattern in GOAL_SAMPLER:
+        text, n = re.subn(pattern, "", text, flags=re.MULTILINE)
+        assert n == 1, f"{pattern!r} matched {n} times"
+    return text
 
 
 @pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
@@ -63,6 +65,17 @@ def test_a_baseline_differs_from_gangstr_hme_only_in_its_goal_sampler(script):
     reference = without_goal_sampler((ROOT / "gangstr_hme.py").read_text())
     assert "class SocialPartner" not in reference and "def social_cycle" not in reference
     assert without_goal_sampler((ROOT / script).read_text()) == reference
+
+
+@pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
+def test_diff_u_of_gangstr_hme_and_a_baseline_has_at_most_3_hunks(script):
+    """The README's promise (section "Baselines"): `diff -u gangstr_hme.py <baseline>` shows 3 hunks, the
+    module docstring, the Args sampler group and the goal-sampler section. Counted as difflib.unified_diff
+    prints them (3 lines of context: changes closer than 7 lines share a hunk), as diff -u does."""
+    ours, theirs = ((ROOT / name).read_text().splitlines() for name in ("gangstr_hme.py", script))
+    groups = difflib.SequenceMatcher(None, ours, theirs, autojunk=False).get_grouped_opcodes(3)
+    hunks = [f"@@ -{g[0][1] + 1},{g[-1][2] - g[0][1]} +{g[0][3] + 1},{g[-1][4] - g[0][3]} @@" for g in groups]
+    assert len(hunks) <= 3, hunks
 
 
 # ------------------------------------------------------------------------------------------------
@@ -112,71 +125,71 @@ def test_bucket_probabilities_mix_10_percent_uniform_with_lp_and_fall_back_to_un
 
 
 def test_lp_goals_come_from_discovered_configs_of_the_drawn_class():
-    learner = lp.Learner(lp.Args(n_blocks=3, n_segments=1, segment_len=5, stable_steps=2), torch.device("cpu"))
+    run = lp.Run(lp.Args(n_blocks=3, n_segments=1, segment_len=5, stable_steps=2), torch.device("cpu"))
+    graph, sampler = run.learner.graph, run.sampler
     apart = int(og.to_mask(og.make_config(3)))
-    learner.graph.add_config(apart)
-    (w,) = learner.workers
-    assert learner.autotelic_goal(w) == apart and w.drawn_from is None  # no bucket yet: autotelic
+    graph.add_config(apart)
+    (w,) = run.workers
+    assert sampler.autotelic_goal(w) == apart and w.drawn_from is None  # no bucket yet: autotelic
     c01 = int(og.to_mask(og.make_config(3, close=[(0, 1)])))
-    learner.graph.add_config(c01)  # the 3 configs of C1 are discovered
-    goals = {learner.autotelic_goal(w) for _ in range(50)}
+    graph.add_config(c01)  # the 3 configs of C1 are discovered
+    goals = {sampler.autotelic_goal(w) for _ in range(50)}
     assert goals == set(og.to_mask(og.evaluation_classes(3)["C1"]).tolist())
-    learner.goal_outcome(w, c01, True)
+    sampler.goal_outcome(w, c01, True)
     assert w.attempts == [(0, True)] and w.drawn_from == 0
-    learner.after_cycle()  # the cycle's outcomes are recorded at its end (with every worker's, SPEC §11)
-    assert list(learner.lp.outcomes[0]) == [1.0] and w.attempts == []
+    sampler.after_cycle()  # the cycle's outcomes are recorded at its end (with every worker's, SPEC §11)
+    assert list(sampler.lp.outcomes[0]) == [1.0] and w.attempts == []
 
 
 # ------------------------------------------------------------------------------------------------
 # 4. VDS scoring and learning
 # ------------------------------------------------------------------------------------------------
-def vds_learner(**kw):
-    learner = vds.Learner(vds.Args(n_blocks=3, **kw), torch.device("cpu"))
-    learner.agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
-    return learner
+def vds_run(**kw):
+    run = vds.Run(vds.Args(n_blocks=3, **kw), torch.device("cpu"))
+    run.learner.agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    return run
 
 
 def test_disagreement_is_the_std_of_the_heads_q_values_for_each_candidate():
-    learner = vds_learner()
+    run = vds_run()
+    agent, sampler = run.learner.agent, run.sampler
     candidates = og.to_mask(og.evaluation_classes(3)["S2"])
-    (w,) = learner.workers
-    score = learner.disagreement(w, candidates)
+    (w,) = run.workers
+    score = sampler.disagreement(w, candidates)
     obs = w.env.set_goal(w.env.goal)
     with torch.no_grad():
         for c, s in zip(candidates, score, strict=True):
-            o = torch.as_tensor(learner.agent.normalizer(obs["observation"])[None])
+            o = torch.as_tensor(agent.normalizer(obs["observation"])[None])
             ag, g = torch.as_tensor(obs["achieved_goal"][None]), torch.as_tensor(og.from_mask(c, 3)[None])
             body, blocks = vds.split_obs(o, 3)
-            a = torch.tanh(
-                learner.agent.actor(body, blocks, learner.agent.critic.messages(learner.agent.gi, blocks, g - ag))[0]
-            )
-            q = torch.stack([h(learner.readout(o, ag, g, a)) for h in learner.vds.heads]).squeeze()
+            a = torch.tanh(agent.actor(body, blocks, agent.critic.messages(agent.gi, blocks, g - ag))[0])
+            q = torch.stack([h(sampler.readout(o, ag, g, a)) for h in sampler.vds.heads]).squeeze()
             assert s == pytest.approx(q.std().item(), rel=1e-4)  # fmt: skip
     assert score.std() > 0  # goals differ
 
 
 @pytest.mark.parametrize("temperature", [1.0, 0.25])
 def test_goals_are_drawn_in_proportion_to_softmax_of_disagreement_over_temperature(monkeypatch, temperature):
-    learner = vds_learner(vds_temperature=temperature)
+    run = vds_run(vds_temperature=temperature)
     for c in og.to_mask(og.evaluation_classes(3)["C1"]):
-        learner.graph.add_config(int(c))
-    nodes = np.asarray(learner.graph.masks)
+        run.learner.graph.add_config(int(c))
+    nodes = np.asarray(run.learner.graph.masks)
     scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
-    monkeypatch.setattr(learner, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
-    draws = [learner.autotelic_goal(learner.workers[0]) for _ in range(6000)]
+    monkeypatch.setattr(run.sampler, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
+    draws = [run.sampler.autotelic_goal(run.workers[0]) for _ in range(6000)]
     freq = np.array([draws.count(m) for m in nodes]) / len(draws)
     expected = vds.softmax(np.array([0.0, 0.5, 1.0]) / temperature)
     np.testing.assert_allclose(freq, expected, atol=0.02)
 
 
 def test_a_tiny_temperature_draws_the_most_disputed_goal_instead_of_failing(monkeypatch):
-    learner = vds_learner(vds_temperature=1e-300)  # scores / 1e-300 overflow: softmax must shift them first
+    run = vds_run(vds_temperature=1e-300)  # scores / 1e-300 overflow: softmax must shift them first
     for c in og.to_mask(og.evaluation_classes(3)["C1"]):
-        learner.graph.add_config(int(c))
-    nodes = np.asarray(learner.graph.masks)
+        run.learner.graph.add_config(int(c))
+    nodes = np.asarray(run.learner.graph.masks)
     scores = dict(zip(nodes.tolist(), [0.0, 0.5, 1.0], strict=True))
-    monkeypatch.setattr(learner, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
-    assert {learner.autotelic_goal(learner.workers[0]) for _ in range(50)} == {int(nodes[2])}
+    monkeypatch.setattr(run.sampler, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
+    assert {run.sampler.autotelic_goal(run.workers[0]) for _ in range(50)} == {int(nodes[2])}
 
 
 @pytest.mark.parametrize(
@@ -196,24 +209,24 @@ def test_a_bad_sampler_value_exits_2_naming_it(script, argv, named, capsys):
 
 
 def test_at_most_1000_candidates_are_scored_all_from_the_agent_graph(monkeypatch):
-    learner = vds_learner()
-    learner.graph = vds.SemanticGraph(3, learner.args)
+    run = vds_run()
+    assert run.learner.graph.n_nodes == 0
     for i in range(2500):
-        learner.graph._add_node(i)  # plain ids as configs
+        run.learner.graph._add_node(i)  # plain ids as configs
     seen = []
-    monkeypatch.setattr(learner, "disagreement", lambda w, cand: seen.append(cand) or np.zeros(len(cand)))
-    learner.autotelic_goal(learner.workers[0])
+    monkeypatch.setattr(run.sampler, "disagreement", lambda w, cand: seen.append(cand) or np.zeros(len(cand)))
+    run.sampler.autotelic_goal(run.workers[0])
     assert len(seen[0]) == 1000 and len(set(seen[0].tolist())) == 1000 and seen[0].max() < 2500
 
 
 def test_vds_heads_regress_the_critics_td_targets():
-    learner = vds_learner()
-    rng = np.random.default_rng(0)
+    run = vds_run()
+    agent, rng = run.learner.agent, np.random.default_rng(0)
     from test_gangstr import filled_buffer  # noqa: PLC0415
 
     buf = filled_buffer()
     losses = []
     for _ in range(60):
-        learner.agent.update(buf.sample(64, [rng], 0.8, "final"))
-        losses.append(learner.train_vds()["vds_loss"])
+        agent.update(buf.sample(64, [rng], 0.8, "final"))
+        losses.append(run.sampler.train_vds(agent.last_batch, agent.last_target)["vds_loss"])
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])
