@@ -796,6 +796,7 @@ def pursue(learner: Learner, w: Worker, goal: int, explore: bool, deterministic:
     return (yield from follow_path(w, path, deterministic))
 
 
+# --- the driver: every worker's program in lockstep (SPEC §11) ------------------------------------
 def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator]):
     """Run one program per worker (a generator of Requests that receives each finished Segment) until
     all are done. Each round, every worker with a request gets its segment, all stepped together;
@@ -844,7 +845,7 @@ def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> 
     filming = [(w.env, r.frames) for w, r in zip(workers, requests, strict=True) if r.frames is not None]
     for t in range(T):
         actions[:, t] = agent.act(o[:, t], ag[:, t], goals, noise[:, t])
-        step_envs([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1])
+        step_envs([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1], physics_threads(a.num_envs))
         for film_env, frames in filming:  # in this thread: a GL context belongs to the thread that made it
             frames.append(film_env.render())
     success = fetch5_env.goal_reached(ag[:, -1], goals)
@@ -852,19 +853,19 @@ def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> 
     return [Segment(o[k], ag[k], goals[k], actions[k], bool(success[k]), bool(stable[k])) for k in range(K)]
 
 
-def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray):
-    """Every env one step, in physics_threads threads; observations written to obs_out and ag_out (K, .)."""
+def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray, threads: int = 1):
+    """Every env one step, in up to `threads` threads; observations written to obs_out and ag_out (K, .)."""
 
     def step_some(ks):
         for k in ks:
             obs = envs[k].step(actions[k])[0]
             obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
 
-    threads = physics_threads(len(envs))
-    if threads == 1:
+    n = min(len(envs), threads)
+    if n == 1:
         step_some(range(len(envs)))
     else:
-        list(physics_pool(threads).map(step_some, [range(i, len(envs), threads) for i in range(threads)]))
+        list(physics_pool(threads).map(step_some, [range(i, len(envs), n) for i in range(n)]))
 
 
 @functools.cache
@@ -884,15 +885,19 @@ def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
 # ------------------------------------------------------------------------------------------------
 class Sampler:
     """A goal sampler decides what every cycle does; the rest of the file uses only these hooks:
-      cycle(w)                        worker w's cycle program: yields Requests until w.left is spent
+      GoalSampler(args, learner, workers)   built once per run (Run), after the Learner
+      cycle(w)                        worker w's cycle program: yields Requests, and must spend all of
+                                      w.left (every worker runs n_segments segments a cycle)
       after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
       after_update(batch, target)     after each SAC update, its batch and TD targets: a dict to log
-      epoch_stats()                   its progress.csv columns for this epoch
-      state_dict(), load_state_dict(s)    what checkpoints keep of it
-      stats, goals                    this epoch's counts (cleared each epoch); goals pursued so far
+      epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
+      state_dict(), load_state_dict(s)    its checkpoint entries (top-level keys of the checkpoint, which
+                                      load_state_dict receives whole: names no other entry has)
+      stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
     and check_sampler_args(args), a function: the first bad value of its options, described, or None.
-    This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic, goals uniform
-    over the agent's nodes; a sampler (the section after this one) overrides what it changes."""
+    This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
+    goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome). A sampler (the
+    section after this one) overrides what it changes."""
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
@@ -930,8 +935,8 @@ class Sampler:
         return {}
 
     def epoch_stats(self) -> dict:
-        st = summed(self.stats, ["autotelic_goals", "autotelic_reached"])
-        return dict(autotelic_goals_reached=st["autotelic_reached"] / max(1, st["autotelic_goals"]))
+        counts = summed(self.stats, ["autotelic_goals", "autotelic_reached"])
+        return dict(autotelic_goals_reached=counts["autotelic_reached"] / max(1, counts["autotelic_goals"]))
 
     def state_dict(self) -> dict:
         return {}
@@ -978,16 +983,16 @@ class GoalSampler(Sampler):
     def autotelic_goal(self, w: Worker) -> int:
         """Up to vds_candidates nodes drawn uniformly, one chosen with probability
         softmax(disagreement / temperature); before any node exists, Sampler's."""
-        a, graph = self.args, self.learner.graph
+        args, graph = self.args, self.learner.graph
         if graph.n_nodes == 0:
             return super().autotelic_goal(w)
         nodes = np.asarray(graph.masks, dtype=np.int64)
-        candidates = nodes if len(nodes) <= a.vds_candidates else w.rng.choice(nodes, a.vds_candidates, False)
+        candidates = nodes if len(nodes) <= args.vds_candidates else w.rng.choice(nodes, args.vds_candidates, False)
         score = self.disagreement(w, candidates)
         self.stats["vds_scored"] += 1
         self.stats["vds_disagreement"] += float(score.mean())
         self.stats["vds_spread"] += float(score.max() - score.min())
-        logits = (score - score.max()) / a.vds_temperature  # shifted first: a tiny temperature gives inf - inf
+        logits = (score - score.max()) / args.vds_temperature  # shifted first: a tiny temperature gives inf - inf
         return int(candidates[w.rng.choice(len(candidates), p=softmax(logits))])
 
     def after_update(self, batch: dict, target: torch.Tensor) -> dict:
@@ -1010,11 +1015,11 @@ class GoalSampler(Sampler):
 
     def epoch_stats(self) -> dict:
         """Besides autotelic success: mean disagreement of the scored candidates and its spread."""
-        st = summed(self.stats, ["vds_scored", "vds_disagreement", "vds_spread"])
-        scored = max(1, st["vds_scored"])
+        counts = summed(self.stats, ["vds_scored", "vds_disagreement", "vds_spread"])
+        scored = max(1, counts["vds_scored"])
         return super().epoch_stats() | dict(
-            vds_disagreement=st["vds_disagreement"] / scored,
-            vds_spread=st["vds_spread"] / scored,
+            vds_disagreement=counts["vds_disagreement"] / scored,
+            vds_spread=counts["vds_spread"] / scored,
         )
 
     def state_dict(self) -> dict:
@@ -1090,10 +1095,10 @@ class Learner:
     def train(self, rngs: list[np.random.Generator], after_update=lambda batch, target: {}) -> dict:
         """The cycle's SAC updates, each on a batch from every worker's replay (drawn with `rngs`, the
         workers' streams); after each, the goal sampler's hook. The mean of each logged value."""
-        a, infos = self.args, []
-        her_prob = 1 - 1 / (1 + a.her_k)
-        for _ in range(a.n_updates if self.buffer.size else 0):
-            info = self.agent.update(self.buffer.sample(a.batch_size, rngs, her_prob, a.her_strategy))
+        args, infos = self.args, []
+        her_prob = 1 - 1 / (1 + args.her_k)
+        for _ in range(args.n_updates if self.buffer.size else 0):
+            info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
         return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
 
@@ -1122,14 +1127,14 @@ def evaluation(run: Run, w: Worker, graph: SemanticGraph, wins: np.ndarray, vide
     """Program: per class, goals drawn uniformly, goal i of the class to worker i mod workers (SPEC §9);
     reset, plan the safest path, follow it deterministically with at most max_eval_subgoals segments;
     success = the last segment ends on the goal. Adds the successes per class to `wins`."""
-    a = run.args
+    args = run.args
     for k, (name, members) in enumerate(run.classes.items()):
-        share = len(range(w.index, a.eval_goals_per_class, run.n_workers))
+        share = len(range(w.index, args.eval_goals_per_class, run.n_workers))
         for i, goal in enumerate(members[w.rng.integers(len(members), size=share)]):
             w.env.reset()
-            filmed = video is not None and w.index == 0 and i < a.video_episodes
+            filmed = video is not None and w.index == 0 and i < args.video_episodes
             path = sample_path(graph, current_config(w.env), int(og.to_mask(goal)), w.rng, explore=False)
-            path = [path[0]] + path[1:][-a.max_eval_subgoals :]
+            path = [path[0]] + path[1:][-args.max_eval_subgoals :]
             wins[k] += yield from follow_path(w, path, True, video.setdefault(name, []) if filmed else None)
 
 
@@ -1348,7 +1353,7 @@ def check_args(a: Args) -> str | None:
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
     n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
-    replay_bytes = a.num_envs * a.buffer_size * (4 * (10 + 15 * n) + 3 * n * (n - 1) // 2 + 16)  # each worker's
+    replay_bytes = a.num_envs * a.buffer_size * (4 * (BODY + PER_BLOCK * n) + 3 * n * (n - 1) // 2 + 16)
     if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
         return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "
                 "memory than this machine has")  # fmt: skip
@@ -1557,6 +1562,7 @@ def plain(d: dict) -> dict:
     return {k: v.item() if isinstance(v, np.generic) else v for k, v in d.items()}
 
 
+# --- files: atomic saves, safe loads --------------------------------------------------------------
 def save_checkpoint(state: dict, path: Path):
     """Write then rename: an interrupted save (even kill -9) never leaves a broken checkpoint."""
     tmp = path.with_name(path.name + ".tmp")
@@ -1594,10 +1600,47 @@ def load_checkpoint(path: str, flag: str = "--resume") -> dict:
     return state
 
 
-# The paper's trained agent (the authors' hipstr/gangstr.pt): a legacy torch.save of [o_mean, o_std, g_mean,
-# g_std] (float32 numpy arrays) and the actor's and critic's state dicts, named as below.
-# Loading it needs numpy's array unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the
-# array and dtype classes and the float32 dtype: float32 arrays and nothing else.
+def restore(run: Run, state: dict, path: str, flag: str):
+    """load_state, or exit 2 with one line if the checkpoint does not fit these networks (written by
+    another version of the script, say)."""
+    try:
+        load_state(run, state)
+    except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
+        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
+
+
+def checkpoint_error(flag: str, path: str, reason: str):
+    reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
+    print(f"error: {flag}: cannot load checkpoint {path!r}: {reason}", file=sys.stderr)
+    sys.exit(2)
+
+
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "save_buffer", "resume")  # what --resume may change
+EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
+                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs", "resume")  # fmt: skip
+
+
+def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
+    """The checkpoint's arguments with this command line's run-control flags; exit 2 naming every given
+    flag that contradicts the checkpoint (it would silently be ignored otherwise)."""
+    saved = Args(**state["args"])
+    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL
+    bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
+           for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
+    if bad:
+        print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
+        sys.exit(2)
+    # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
+    # unless given again (threads, say: a different thread count changes float sums).
+    keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
+    return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
+
+
+# --- the paper's trained agent (--init-from, --eval-only --checkpoint) ----------------------------
+# The authors' hipstr/gangstr.pt: a legacy torch.save of [o_mean, o_std, g_mean, g_std] (float32 numpy
+# arrays) and the actor's and critic's state dicts, named as below. Loading it needs numpy's array
+# unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the array and dtype classes and
+# the float32 dtype: float32 arrays and nothing else.
 _reconstruct = np.zeros(0, np.float32).__reduce__()[0]
 PAPER_GLOBALS = [
     (_reconstruct, "numpy.core.multiarray._reconstruct"),
@@ -1678,42 +1721,6 @@ def load_weights(agent: SAC, state: dict, args: Args, path: str, flag: str):
         agent.normalizer.add(stats["sum"].numpy(), stats["sumsq"].numpy(), stats["count"])
     else:
         agent.normalizer.add_prior(stats["mean"], stats["std"], args.init_prior_count)
-
-
-def restore(run: Run, state: dict, path: str, flag: str):
-    """load_state, or exit 2 with one line if the checkpoint does not fit these networks (written by
-    another version of the script, say)."""
-    try:
-        load_state(run, state)
-    except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
-        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
-
-
-def checkpoint_error(flag: str, path: str, reason: str):
-    reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
-    print(f"error: {flag}: cannot load checkpoint {path!r}: {reason}", file=sys.stderr)
-    sys.exit(2)
-
-
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "save_buffer", "resume")  # what --resume may change
-EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs")  # fmt: skip
-
-
-def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
-    """The checkpoint's arguments with this command line's run-control flags; exit 2 naming every given
-    flag that contradicts the checkpoint (it would silently be ignored otherwise)."""
-    saved = Args(**state["args"])
-    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL
-    bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
-           for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
-    if bad:
-        print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
-        sys.exit(2)
-    # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
-    # unless given again (threads, say: a different thread count changes float sums).
-    keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
-    return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
 
 
 def args_with_blocks_of(args: Args, given: set[str], state: dict, path: str, flag: str) -> Args:
@@ -1802,6 +1809,7 @@ def progress(text: str, final: bool = False):
         print(text, flush=True)
 
 
+# --- --eval-only: results and videos --------------------------------------------------------------
 def write_video(path: Path, frames: list[np.ndarray], fps: float):
     """An H.264 mp4 through the ffmpeg binary that imageio-ffmpeg ships; written, then renamed."""
     import imageio_ffmpeg  # noqa: PLC0415 (needed only for --capture-video)

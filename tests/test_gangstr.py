@@ -849,6 +849,19 @@ def test_a_second_evaluation_of_a_checkpoint_is_saved_beside_the_first_never_ove
                                                                "eval_agent_epoch0_seed0_2.json"]  # fmt: skip
 
 
+def test_eval_only_evaluates_the_checkpoint_of_a_resumed_finished_run(tmp_path):
+    """A resumed run's checkpoint holds its --resume path; --eval-only evaluates it all the same (it once
+    answered "nothing to do", taking the evaluation for a resume of a finished run)."""
+    path = tmp_path / "agent.pt"
+    run = gh.Run(gh.Args(n_blocks=3, n_epochs=1, buffer_size=400, resume=str(path)), torch.device("cpu"))
+    run.epoch = 1  # its one epoch done
+    gh.save_checkpoint(gh.save_state(run), path)
+    out = run_script("--eval-only", "--checkpoint", str(path), "--eval-goals-per-class", "1", runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "global  SR" in out.stdout and "nothing to do" not in out.stdout
+    assert [p.name for p in tmp_path.glob("eval_*")] == ["eval_agent_epoch1_seed0.json"]
+
+
 def test_capture_video_without_a_display_or_gl_backend_exits_2_saying_what_to_install(tmp_path):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
     gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")

@@ -87,8 +87,8 @@ def test_segment_success_agrees_with_the_env_reward():
 
 @pytest.mark.parametrize("name", ["gangstr_hme.py", "lp_baseline.py", "vds_baseline.py"])
 def test_success_is_written_once_and_the_learners_call_it(name):
-    """No training script compares two configs for equality itself: HER and segment success go through
-    fetch5_env.goal_reached, the rule the env's compute_reward (and so step) uses."""
+    """HER rewards and segment success go through fetch5_env.goal_reached, the rule the env's
+    compute_reward (and so step) uses; no script writes its own array comparison for them."""
     tree = ast.parse((ROOT / name).read_text())
     calls = {
         fn.name: {ast.unparse(c.func) for c in ast.walk(fn) if isinstance(c, ast.Call)}
