@@ -24,8 +24,8 @@ The paper's pseudo-code (appendix; Algorithm 1: autotelic, Algorithm 2: social),
       Π.update(B)                          Learner.train: SAC.update on HER batches
 
 Read top to bottom: Args, the networks (SPEC §5), normalizer and HER replay, SAC, the semantic graph
-and its path estimator (SPEC §6), rollouts, the goal sampler (HME, SPEC §7), learning and evaluation
-(SPEC §9), the main loop. Then the plumbing a forker may skip: command line, processes (SPEC §11),
+and its path estimator (SPEC §6), rollouts, goal samplers (Sampler: the hooks) and HME's (SPEC §7),
+learning, evaluation (SPEC §9), the main loop. Then the plumbing a forker may skip: command line, processes (SPEC §11),
 checkpoints and the paper's trained agent, outputs (SPEC §10), interruptions, main().
 """
 

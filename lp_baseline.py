@@ -2,8 +2,8 @@
 """GANGSTR with a learning-progress goal sampler (the paper's LP baseline), in one file.
 
 The same learner as gangstr_hme.py (GNN SAC+HER, semantic graph, decomposition, evaluation, outputs);
-no social partner. Goals come from 11 buckets, one per evaluation class, each holding the configs of
-that class the agent has discovered; a bucket is chosen with probability proportional to the agent's
+no social partner. Goals come from buckets, one per evaluation class (11 with 5 blocks), each holding
+the configs of that class the agent has discovered; a bucket is chosen with probability proportional to the agent's
 learning progress on it (SPEC §8; paper Section 4.2). A diff against gangstr_hme.py shows only the goal
 sampler, its options and its logging.
 
