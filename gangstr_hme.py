@@ -971,6 +971,8 @@ class GoalSampler(Sampler):
         super().__init__(args, learner, workers)
         self.sp = SocialPartner(args.n_blocks)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
+        names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
+        self.proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
 
@@ -1085,16 +1087,14 @@ class GoalSampler(Sampler):
     def epoch_stats(self) -> dict:
         """Besides autotelic success: the share of social and rehearsal cycles, stepping stones left, the
         number of distinct internalized pairs, the partner's proposals per class (frontier and beyond)."""
-        names = [*og.evaluation_classes(self.args.n_blocks), "other"]
-        proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
-        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *proposals])
+        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *self.proposals])
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
             social_share=counts["social_cycles"] / cycles,
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
-            **{k: counts[k] for k in proposals},
+            **{k: counts[k] for k in self.proposals},
         )
 
     def state_dict(self) -> dict:
