@@ -76,6 +76,11 @@ def semantic_config(positions: np.ndarray) -> np.ndarray:
     return np.where(pred, np.float32(1.0), np.float32(-1.0))
 
 
+def obs_size(n_blocks: int) -> int:
+    """Floats in an observation of n_blocks blocks (SPEC §3): 10 of the gripper, 15 per block."""
+    return 10 + 15 * n_blocks
+
+
 def goal_reached(achieved_goal, desired_goal) -> np.ndarray:
     """Success, written once for the env and every learner (its reward, HER's relabelled reward, a
     segment's success): the achieved config equals the goal on every predicate. Bool, batched over
@@ -124,7 +129,7 @@ class FetchManipulateEnv(gym.Env):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.render_mode, self.width, self.height = render_mode, width, height
         self.goal_dim = og.config_dim(self.n_blocks)
-        self.obs_dim = 10 + 15 * self.n_blocks
+        self.obs_dim = obs_size(self.n_blocks)
 
         self.model = build_model(self.n_blocks)
         self.data = mujoco.MjData(self.model)

@@ -25,46 +25,35 @@ The paper's pseudo-code (appendix; Algorithm 1: autotelic, Algorithm 2: social),
 
 Read top to bottom: Args, the networks (SPEC §5), normalizer and HER replay, SAC, the semantic graph
 and its path estimator (SPEC §6), rollouts, goal samplers (Sampler: the hooks) and HME's (SPEC §7),
-learning, evaluation (SPEC §9), the main loop. Then the plumbing a forker may skip: command line, processes (SPEC §11),
-checkpoints and the paper's trained agent, outputs (SPEC §10), interruptions, main().
+learning, evaluation (SPEC §9), the main loop, main(). What is not the algorithm (command line, processes,
+checkpoints and the paper's trained agent, outputs, interruptions) is written once for the three training
+scripts in plumbing.py, which a reader of the paper may skip.
 """
 
 from __future__ import annotations
 
-import argparse
-import ast
 import collections
 import collections.abc
 import concurrent.futures
-import contextlib
 import copy
-import csv
-import dataclasses
 import functools
-import gc
 import heapq
-import inspect
-import itertools
-import json
 import math
 import os
-import re
-import signal
-import sys
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.distributed as dist
 import torch.nn as nn
 import torch.nn.functional as F
 
 import fetch5_env
 import oracle_graph as og
+import plumbing  # what is not the algorithm: command line, checkpoints, outputs, interruptions
+from plumbing import all_gather_rows, all_sum, broadcast_params, gather_workers, rank, sum_grads, summed, world
 
 
 @dataclass
@@ -1276,7 +1265,7 @@ class Run:
         self.sampler = GoalSampler(args, self.learner, self.workers)
         self.classes = og.evaluation_classes(args.n_blocks)
         self.epoch, self.cycle = 0, 0
-        self.tally = new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
+        self.tally = plumbing.new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
         self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)
 
 
@@ -1304,851 +1293,49 @@ def one_cycle(run: Run):
     run.cycle += 1
 
 
-def train_loop(run: Run, logger: Logger | None, ckpt_path: Path, stopper: Stopper) -> int:
-    """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row
-    (in that order: a row is never logged unless a checkpoint holds it)."""
-    args = run.args
+def train_loop(run: Run, out: plumbing.RunFolder) -> int:
+    """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row (in that
+    order: a row is never logged unless a checkpoint holds it). Ctrl-C or SIGTERM stops it at a cycle boundary
+    (or during a one-process evaluation) with a checkpoint that --resume continues exactly (plumbing.Stopper)."""
+    args, stopper = run.args, out.stopper
     while run.epoch < args.n_epochs:
         while run.cycle < args.n_cycles:
             one_cycle(run)
             if run.cycle == 1 or run.cycle % max(1, args.n_cycles // 10) == 0:
-                progress(f"  epoch {run.epoch} cycle {run.cycle}/{args.n_cycles} | nodes {run.learner.graph.n_nodes:,} "
-                         f"| critic loss {run.tally['losses']['critic_loss']:.3f}")  # fmt: skip
+                critic_loss = run.tally["losses"]["critic_loss"]
+                plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,} | critic loss {critic_loss:.3f}")
             if stopper.agreed():
-                return stop_here(run, save_state(run) if rank() == 0 else None, ckpt_path)
-        before_eval = save_state(run) if world() == 1 else None  # cheap: views of the live tensors
+                return out.stop(run, plumbing.save_state(run) if rank() == 0 else None)
+        before_eval = plumbing.save_state(run) if world() == 1 else None  # cheap: views of the live tensors
         t = time.perf_counter()
         try:
             with stopper.abortable(allowed=before_eval is not None):
                 sr = evaluate(run)
         except KeyboardInterrupt:
-            return stop_here(run, before_eval, ckpt_path)
+            return out.stop(run, before_eval)
         run.tally["eval"] = time.perf_counter() - t
-        row = finish_epoch(run, sr)
-        if logger is not None:
-            save_checkpoint(save_state(run), ckpt_path)
-            logger.log(row)
-        per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
-        progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
-                 f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
-                 final=True)  # fmt: skip
+        out.end_epoch(run, sr)  # its row (plumbing.finish_epoch), checkpointed, then logged
         if stopper.agreed():
-            return stop_here(run, None, ckpt_path)
-    return 0
-
-
-LOSSES = ("critic_loss", "actor_loss", "q", "target", "entropy")  # fixed columns, NaN before any update
-
-
-def new_tally(env_steps: int) -> dict:
-    """An epoch's running totals for its progress.csv row: segment outcomes, the last cycle's losses,
-    seconds per phase."""
-    return dict(wins=0, tries=0, losses=dict.fromkeys(LOSSES, math.nan), collect=0.0, update=0.0, eval=0.0,
-                env_steps_at_start=env_steps)  # fmt: skip
-
-
-def finish_epoch(run: Run, sr: dict[str, float]) -> dict:
-    """The epoch's progress.csv row (SPEC §10; TensorBoard groups its columns, see tensorboard_tag); the
-    run moves on to the next epoch."""
-    learner, tally = run.learner, run.tally
-    steps = learner.segments * run.args.segment_len  # all workers'
-    goals, wins, tries = all_sum(np.array([run.sampler.goals, tally["wins"], tally["tries"]], dtype=np.float64))
-    seconds = tally["collect"] + tally["update"] + tally["eval"]
-    met = np.array(sorted(learner.encountered), dtype=np.int64)
-    row = plain(dict(
-        epoch=run.epoch, goals=int(goals), segments=learner.segments, env_steps=steps, global_sr=sr["global"],
-        train_success=wins / max(1, tries),
-        **{f"sr_{k}": sr[k] for k in run.classes},
-        **{f"encounters_{k}": int(np.isin(og.to_mask(m), met).sum()) for k, m in run.classes.items()},
-        **run.sampler.epoch_stats(),
-        agent_nodes=learner.graph.n_nodes, agent_edges=learner.graph.n_edges, sr_classes=len(learner.graph.sr),
-        **tally["losses"],
-        time_collect=tally["collect"], time_update=tally["update"], time_eval=tally["eval"],
-        time_plan_and_graph=learner.plan_seconds,
-        steps_per_second=(steps - tally["env_steps_at_start"]) / max(seconds, 1e-9),
-    ))  # fmt: skip
-    run.rows.append(row)
-    run.epoch, run.cycle = run.epoch + 1, 0
-    run.tally, learner.plan_seconds = new_tally(steps), 0.0
-    run.sampler.stats.clear()
-    return row
-
-
-# ------------------------------------------------------------------------------------------------
-# Command line (plumbing): argparse built from Args, each field's docstring its --help line
-# ------------------------------------------------------------------------------------------------
-def _field_docs(cls) -> dict[str, str]:
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {
-        a.target.id: b.value.value
-        for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
-    }
-
-
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str):
-        """Bad input: one line naming the value, exit code 2 (not argparse's screen of usage)."""
-        self.exit(2, f"{self.prog}: error: {message} (--help lists every option)\n")
-
-
-def make_parser(with_defaults: bool = True) -> argparse.ArgumentParser:
-    """argparse built from Args, each field's docstring and default its --help line. Without defaults,
-    parsing yields only the flags the user gave (see given_flags)."""
-    parser = OneLineParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    if not with_defaults:
-        parser.argument_default = argparse.SUPPRESS
-    docs = {k: v.replace("%", "%%") for k, v in _field_docs(Args).items()}  # argparse formats help with %
-    for f in dataclasses.fields(Args):
-        flag, default = "--" + f.name.replace("_", "-"), f.default if with_defaults else argparse.SUPPRESS
-        text = docs[f.name] + (f" (default: {f.default!r})" if with_defaults else "")
-        if f.type in ("bool", bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=text)
-        else:
-            kind = {"int": int, "float": float, "str": str}[f.type]
-            parser.add_argument(flag, type=kind, default=default, help=text, metavar=kind.__name__.upper())
-    return parser
-
-
-def parse_args(argv=None) -> Args:
-    parser = make_parser()
-    args = Args(**vars(parser.parse_args(argv)))
-    problem = check_args(args)
-    if problem:
-        parser.error(problem)  # exit code 2, the message names the value
-    return args
-
-
-def given_flags(argv=None) -> set[str]:
-    """The Args fields the command line sets explicitly (whatever their value)."""
-    return set(vars(make_parser(with_defaults=False).parse_args(argv)))
-
-
-def check_args(a: Args) -> str | None:
-    """The first bad value in a, described, or None."""
-    for f in dataclasses.fields(Args):
-        value = getattr(a, f.name)
-        if f.type in ("float", float) and not math.isfinite(value):
-            return f"--{f.name.replace('_', '-')} must be a finite number, got {value}"
-    at_least_1 = ("n_epochs", "n_cycles", "n_segments", "batch_size", "segment_len", "buffer_size", "k_shortest",
-                  "eval_goals_per_class", "stable_steps", "target_update_every", "max_eval_subgoals",
-                  "init_prior_count", "num_envs")  # fmt: skip
-    for name in at_least_1:
-        if getattr(a, name) < 1:
-            return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes"):
-        if getattr(a, name) < 0:
-            return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
-    for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
-        if not 0.0 <= getattr(a, name) <= 1.0:
-            return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
-    if not 0 <= a.seed < 2**32:
-        return f"--seed must be in [0, 2**32), got {a.seed}"
-    if a.alpha < 0:
-        return f"--alpha must be non-negative, got {a.alpha}"
-    for name in ("lr_actor", "lr_critic"):
-        if getattr(a, name) <= 0:
-            return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
-    if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
-        return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
-    if a.her_strategy not in ("final", "future"):
-        return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
-    if a.plan_on not in ("agent", "oracle"):
-        return f"--plan-on must be 'agent' or 'oracle', got {a.plan_on!r}"
-    if a.max_path_len < 2:
-        return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
-    if a.stable_steps > a.segment_len:
-        return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
-    if a.buffer_size < a.n_segments * a.segment_len:
-        return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
-    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
-    replay_bytes = a.num_envs * a.buffer_size * (4 * (BODY + PER_BLOCK * n) + 3 * n * (n - 1) // 2 + 16)
-    if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
-        return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "
-                "memory than this machine has")  # fmt: skip
-    if a.batch_size > MAX_BATCH:  # one update's activations grow as batch x edges x 256 floats
-        return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
-    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
-        return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
-    if a.cuda and not torch.cuda.is_available():
-        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
-    return check_run_control(a) or check_sampler_args(a)
-
-
-MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
-
-
-def check_run_control(a: Args) -> str | None:
-    """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
-    need."""
-    if a.resume and a.eval_only:
-        return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
-    if a.init_from and (a.resume or a.eval_only):
-        return (f"--init-from {a.init_from!r} starts a new run: not with --resume (which continues one) or "
-                "--eval-only (evaluate the file with --eval-only --checkpoint PATH)")  # fmt: skip
-    if a.resume and not os.path.isfile(a.resume):
-        return f"--resume: cannot read checkpoint {a.resume!r}"
-    if a.init_from and not os.path.isfile(a.init_from):
-        return f"--init-from: cannot read {a.init_from!r}"
-    if a.eval_only and not os.path.isfile(a.checkpoint):
-        return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
-    if a.checkpoint and not a.eval_only:
-        return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
-    if a.capture_video and not a.eval_only:
-        return "--capture-video films an --eval-only evaluation; add --eval-only --checkpoint PATH"
-    if a.plan_on != "agent" and not a.eval_only:
-        return f"--plan-on {a.plan_on!r} plans an --eval-only evaluation; add --eval-only --checkpoint PATH"
-    if not (a.resume or a.eval_only):
-        parent = Path(a.runs_dir).absolute()
-        while not parent.exists():
-            parent = parent.parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            return f"--runs-dir {a.runs_dir!r}: cannot create a run folder under {str(parent)!r}"
-    return None
-
-
-# ------------------------------------------------------------------------------------------------
-# Processes (plumbing; SPEC §11): one by default; under torchrun, several, holding the workers
-# ------------------------------------------------------------------------------------------------
-def init_workers(args: Args) -> torch.device:
-    """Join the torchrun job if there is one (gloo on CPU, nccl on GPU); this process's device."""
-    cuda = args.cuda and torch.cuda.is_available()
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        if cuda:
-            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
-        dist.init_process_group("nccl" if cuda else "gloo")
-    return torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
-
-
-def rank() -> int:
-    return dist.get_rank() if dist.is_initialized() else 0
-
-
-def world() -> int:
-    return dist.get_world_size() if dist.is_initialized() else 1
-
-
-def _comm_device() -> torch.device:
-    return torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else torch.device("cpu")
-
-
-def all_sum(x: np.ndarray) -> np.ndarray:
-    """Element-wise sum over processes (float64)."""
-    if world() == 1:
-        return x
-    t = torch.as_tensor(x, dtype=torch.float64, device=_comm_device())
-    dist.all_reduce(t)
-    return t.cpu().numpy()
-
-
-def gather_workers(local: np.ndarray) -> np.ndarray:
-    """(all workers, ...) float64 rows from this process's (num_envs, ...) rows, in global worker order: a
-    sum of zero-padded copies, which adds nothing but zeros to any value."""
-    if world() == 1:
-        return np.asarray(local, dtype=np.float64)
-    full = np.zeros((world() * len(local), *np.shape(local)[1:]))
-    full[rank() * len(local) : (rank() + 1) * len(local)] = local
-    return all_sum(full)
-
-
-def all_gather_rows(rows: np.ndarray) -> np.ndarray:
-    """Every process's int64 rows (any number each), concatenated in rank order, so in global worker order
-    when each process gives its workers' rows in order: the same in every process."""
-    rows = np.asarray(rows, dtype=np.int64)
-    if world() == 1:
-        return rows
-    dev = _comm_device()
-    counts = [torch.zeros(1, dtype=torch.int64, device=dev) for _ in range(world())]
-    dist.all_gather(counts, torch.tensor([len(rows)], device=dev))
-    counts = [int(c) for c in counts]
-    padded = torch.zeros((max(counts), *rows.shape[1:]), dtype=torch.int64, device=dev)
-    padded[: len(rows)] = torch.as_tensor(rows, device=dev)
-    parts = [torch.empty_like(padded) for _ in counts]
-    dist.all_gather(parts, padded)
-    return torch.cat([p[:c] for p, c in zip(parts, counts, strict=True)]).cpu().numpy()
-
-
-def broadcast_params(*modules: nn.Module):
-    """Every process starts from process 0's parameters."""
-    if world() > 1:
-        for t in (t for m in modules for t in m.state_dict().values()):
-            dist.broadcast(t, src=0)
-
-
-def sum_grads(params: list[torch.Tensor]):
-    """Gradients summed over processes, in one all-reduce (within a process, the losses already sum its
-    workers', see SAC.losses): the sum over all workers of SPEC §11."""
-    if world() > 1:
-        grads = [p.grad for p in params]
-        flat = torch.cat([g.reshape(-1) for g in grads])
-        dist.all_reduce(flat)
-        for g, synced in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
-            g.copy_(synced.view_as(g))
-
-
-def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
-    """Counts of this process's workers (a goal sampler's stats), summed over every process."""
-    return dict(zip(keys, all_sum(np.array([counts[k] for k in keys], dtype=np.float64)), strict=True))
-
-
-# ------------------------------------------------------------------------------------------------
-# Checkpoints (plumbing; SPEC §10): the run's state, atomic saves, safe loads, what --resume and
-# --eval-only may change
-# ------------------------------------------------------------------------------------------------
-SCRIPT = Path(__file__).stem  # a checkpoint names the script that wrote it
-ENV_VERSION = fetch5_env.ENV_VERSION  # ... and the environment it was trained in
-CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
-NETWORKS = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # SAC's, as saved
-REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays
-
-
-def save_state(run: Run) -> dict:
-    """Everything the rest of the run depends on (SPEC §10): a resumed run is the uninterrupted one."""
-    agent, learner = run.learner.agent, run.learner
-    state = dict(
-        script=SCRIPT, env_version=ENV_VERSION, args=dataclasses.asdict(run.args),
-        counters=dict(epoch=run.epoch, cycle=run.cycle, segments=learner.segments, goals=run.sampler.goals,
-                      n_updates=agent.n_updates),
-        epoch_so_far=dict(tally=copy.deepcopy(run.tally), stats=plain(run.sampler.stats),
-                          plan_seconds=learner.plan_seconds),
-        rows=copy.deepcopy(run.rows),
-        **{name: getattr(agent, name).state_dict() for name in NETWORKS},
-        normalizer=dict(sum=torch.tensor(agent.normalizer.sum), sumsq=torch.tensor(agent.normalizer.sumsq),
-                        count=agent.normalizer.count),
-        graph=learner.graph.state_dict(),
-        encountered=torch.tensor(sorted(learner.encountered), dtype=torch.int64),
-        **run.sampler.state_dict(),
-        rng=[json.dumps(w.rng.bit_generator.state) for w in run.workers],  # each worker's, of this process
-        env_rng=[json.dumps(w.env.np_random.bit_generator.state) for w in run.workers],
-    )  # fmt: skip
-    if run.args.save_buffer:
-        b, n = learner.buffer, learner.buffer.size
-        # One tensor per worker: a view of worker i's first n segments holds only them, where a view of
-        # every worker's would hold (and torch.save write) the whole array between them.
-        saved = {k: [torch.from_numpy(getattr(b, k)[i, :n]) for i in range(len(run.workers))] for k in REPLAY}
-        state["buffer"] = dict(ptr=b.ptr, **saved)
-    return state
-
-
-def load_state(run: Run, s: dict):
-    """The run as save_state saw it (process 0's random streams and replays; see below for the others)."""
-    agent, learner = run.learner.agent, run.learner
-    if not isinstance(s.get("rng", []), list):
-        raise ValueError("written before --num-envs (one random stream per worker): retrain, or use that version")
-    c, so_far = s["counters"], s["epoch_so_far"]
-    run.epoch, run.cycle, learner.segments, run.sampler.goals = c["epoch"], c["cycle"], c["segments"], c["goals"]
-    agent.n_updates = c["n_updates"]
-    run.tally, learner.plan_seconds = so_far["tally"], so_far["plan_seconds"]
-    run.sampler.stats = collections.Counter(so_far["stats"])
-    run.rows = s["rows"]
-    for name in NETWORKS:
-        getattr(agent, name).load_state_dict(s[name])
-    agent.normalizer.sum[:], agent.normalizer.sumsq[:], agent.normalizer.count = 0.0, 0.0, 0
-    agent.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
-    learner.graph.load_state_dict(s["graph"])
-    learner.encountered = set(s["encountered"].tolist())
-    run.sampler.load_state_dict(s)
-    if rank() > 0:  # the checkpoint holds process 0's random streams and replays: the others start anew
-        for w in run.workers:
-            w.rng = np.random.default_rng([run.args.seed + w.index, run.epoch, run.cycle])
-            w.env.reset(seed=int(w.rng.integers(2**31)))
-        run.sampler.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
-        run.tally.update(wins=0, tries=0)
-        return
-    for w, rng, env_rng in zip(run.workers, s.get("rng", []), s.get("env_rng", []), strict=False):
-        w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
-        w.env.np_random.bit_generator.state = json.loads(env_rng)
-    if "buffer" in s:
-        b, n = learner.buffer, len(s["buffer"]["obs"][0])
-        for k in REPLAY:
-            for i, saved in enumerate(s["buffer"][k]):
-                getattr(b, k)[i, :n] = saved.numpy()
-        b.size, b.ptr = n, s["buffer"]["ptr"]
-
-
-def plain(d: dict) -> dict:
-    """d with numpy scalars as Python numbers: a weights_only load accepts nothing else."""
-    return {k: v.item() if isinstance(v, np.generic) else v for k, v in d.items()}
-
-
-# --- files: atomic saves, safe loads --------------------------------------------------------------
-def save_checkpoint(state: dict, path: Path):
-    """Write then rename: an interrupted save (even kill -9) never leaves a broken checkpoint."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-
-
-def load_checkpoint(path: str, flag: str = "--resume") -> dict:
-    """A checkpoint of this script, or the paper's agent (see from_paper), or exit 2 with one line saying what
-    the file is instead. Loading never runs code from the file (weights_only, with the paper's numpy arrays
-    as the only addition to what torch allows)."""
-    try:
-        with torch.serialization.safe_globals(PAPER_GLOBALS):
-            state = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as e:  # noqa: BLE001 (any unreadable file gets the same one-line error)
-        if "Weights only load failed" in str(e):  # torch's refusal of an object outside the allowed ones
-            found = re.search(r"GLOBAL (\S+)|but got (<.*?>)|unrecognized function (.*?)$", str(e), re.MULTILINE)
-            what = next(g for g in found.groups() if g) if found else "an object"
-            checkpoint_error(flag, path, f"refused: it holds {what}, which no checkpoint holds (nothing was run)")
-        checkpoint_error(flag, path, f"not a checkpoint ({type(e).__name__}: {e})")
-    if isinstance(state, list):
-        return from_paper(state, path, flag)
-    if not isinstance(state, dict) or not all(k in state for k in CHECKPOINT_KEYS):
-        checkpoint_error(flag, path, "not a checkpoint of this project (a torch file without its keys)")
-    version = state.get("env_version", 1)  # checkpoints older than ENV_VERSION: version 1
-    if version != ENV_VERSION:
-        checkpoint_error(flag, path, f"trained in environment version {version}, but fetch5_env.py is now version "
-                                     f"{ENV_VERSION} (the environment changed): retrain")  # fmt: skip
-    if state.get("script", SCRIPT) != SCRIPT:
-        checkpoint_error(flag, path, f"a checkpoint of {state['script']}.py, not of {SCRIPT}.py: use that script")
-    try:
-        Args(**state["args"])
-    except TypeError as e:
-        checkpoint_error(flag, path, f"written by another version of {SCRIPT}.py ({e})")
-    return state
-
-
-def restore(run: Run, state: dict, path: str, flag: str):
-    """load_state, or exit 2 with one line if the checkpoint does not fit these networks (written by
-    another version of the script, say)."""
-    try:
-        load_state(run, state)
-    except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
-        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
-
-
-def checkpoint_error(flag: str, path: str, reason: str):
-    reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
-    print(f"error: {flag}: cannot load checkpoint {path!r}: {reason}", file=sys.stderr)
-    sys.exit(2)
-
-
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "save_buffer", "resume")  # what --resume may change
-EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs", "resume")  # fmt: skip
-
-
-def args_from_checkpoint(args: Args, given: set[str], state: dict, flag: str) -> Args:
-    """The checkpoint's arguments with this command line's run-control flags; exit 2 naming every given
-    flag that contradicts the checkpoint (it would silently be ignored otherwise)."""
-    saved = Args(**state["args"])
-    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL
-    bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
-           for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
-    if bad:
-        print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
-        sys.exit(2)
-    # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
-    # unless given again (threads, say: a different thread count changes float sums).
-    keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
-    return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
-
-
-# --- the paper's trained agent (--init-from, --eval-only --checkpoint) ----------------------------
-# The authors' hipstr/gangstr.pt: a legacy torch.save of [o_mean, o_std, g_mean, g_std] (float32 numpy
-# arrays) and the actor's and critic's state dicts, named as below. Loading it needs numpy's array
-# unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the array and dtype classes and
-# the float32 dtype: float32 arrays and nothing else.
-_reconstruct = np.zeros(0, np.float32).__reduce__()[0]
-PAPER_GLOBALS = [
-    (_reconstruct, "numpy.core.multiarray._reconstruct"),
-    (_reconstruct, "numpy._core.multiarray._reconstruct"),
-    np.ndarray,
-    np.dtype,
-    type(np.dtype(np.float32)),
-]
-PAPER_LAYERS = (  # (the authors' layer, our network and layer): SPEC §5's roles in order. Two layers of theirs
-    # mapped to one of ours are stacked in this order: our head's mean rows above its log-std rows.
-    ("phi_actor.linear1", "actor", "node.hidden"),
-    ("phi_actor.linear2", "actor", "node.out"),
-    ("rho_actor.linear1", "actor", "head.hidden"),
-    ("rho_actor.mean_linear", "actor", "head.out"),
-    ("rho_actor.log_std_linear", "actor", "head.out"),
-    ("mp_critic.linear1", "critic", "message.hidden"),
-    ("mp_critic.linear2", "critic", "message.out"),
-    ("phi_critic.linear1", "critic", "q_nodes.0.hidden"),
-    ("phi_critic.linear2", "critic", "q_nodes.0.out"),
-    ("phi_critic.linear4", "critic", "q_nodes.1.hidden"),
-    ("phi_critic.linear5", "critic", "q_nodes.1.out"),
-    ("rho_critic.linear1", "critic", "q_heads.0.hidden"),
-    ("rho_critic.linear3", "critic", "q_heads.0.out"),
-    ("rho_critic.linear4", "critic", "q_heads.1.hidden"),
-    ("rho_critic.linear6", "critic", "q_heads.1.out"),
-)
-
-
-def from_paper(items: list, path: str, flag: str) -> dict:
-    """The paper's file as {actor, critic: our state dicts; normalizer: mean and std; n_blocks} (read from
-    the observation size), or exit 2 with one line. It holds no target network, optimizer, graph or
-    counters; its goals were not normalized (g_mean 0, g_std 1), as SPEC §5 has it."""
-    arrays, nets = items[:4], items[4:]
-    if len(items) != 6 or not all(isinstance(x, np.ndarray) and x.ndim == 1 for x in arrays) or \
-            not all(isinstance(x, dict) for x in nets):  # fmt: skip
-        checkpoint_error(flag, path, "not a checkpoint of this project, nor the paper's agent (a list)")
-    o_mean, o_std, g_mean, g_std = arrays
-    n = (len(o_mean) - BODY) // PER_BLOCK
-    if not og.MIN_BLOCKS <= n <= og.MAX_BLOCKS or {len(o_mean), len(o_std)} != {BODY + PER_BLOCK * n} or \
-            {len(g_mean), len(g_std)} != {og.config_dim(n)}:  # fmt: skip
-        checkpoint_error(flag, path, f"the paper's format, but statistics of sizes {len(o_mean)} and {len(g_mean)}")
-    if (g_mean != 0).any() or (g_std != 1).any():
-        checkpoint_error(flag, path, "the paper's format, but with normalized goals (SPEC §5 normalizes none)")
-    theirs = dict(actor=nets[0], critic=nets[1])
-    for net, tensors in theirs.items():
-        expected = {f"{layer}.{p}" for layer, of, _ in PAPER_LAYERS if of == net for p in ("weight", "bias")}
-        if set(tensors) != expected or not all(isinstance(v, torch.Tensor) for v in tensors.values()):
-            odd = sorted(set(tensors) ^ expected) or ["a value that is not a tensor"]
-            checkpoint_error(flag, path, f"the paper's format, but its {net} differs: {', '.join(odd)}")
-    state = dict(format="paper", n_blocks=n, normalizer=dict(mean=o_mean, std=o_std), actor={}, critic={})
-    for layer, net, ours in PAPER_LAYERS:
-        for p in ("weight", "bias"):
-            before, weights = state[net].get(f"{ours}.{p}"), theirs[net][f"{layer}.{p}"]
-            try:
-                state[net][f"{ours}.{p}"] = weights if before is None else torch.cat([before, weights])
-            except RuntimeError as e:  # stacked layers of different widths
-                checkpoint_error(flag, path, f"the paper's format, but {layer}.{p}: {e}")
-    return state
-
-
-def blocks_of(state: dict) -> int:
-    return state["n_blocks"] if state.get("format") == "paper" else state["args"]["n_blocks"]
-
-
-def load_weights(agent: SAC, state: dict, args: Args, path: str, flag: str):
-    """A checkpoint's networks and normalizer (ours or the paper's), nothing else: what --init-from starts from,
-    and all that the paper's file holds. The target critic is a copy of the critic, as in any new run (the
-    paper's file has none). The paper's statistics come without a count: they weigh as --init-prior-count
-    observations (Normalizer.add_prior); ours keep their own count."""
-    try:
-        agent.actor.load_state_dict(state["actor"])
-        agent.critic.load_state_dict(state["critic"])
-    except (KeyError, RuntimeError) as e:
-        checkpoint_error(flag, path, f"{type(e).__name__}: {e}")
-    agent.critic_target.load_state_dict(agent.critic.state_dict())
-    stats = state["normalizer"]
-    if "count" in stats:
-        agent.normalizer.add(stats["sum"].numpy(), stats["sumsq"].numpy(), stats["count"])
-    else:
-        agent.normalizer.add_prior(stats["mean"], stats["std"], args.init_prior_count)
-
-
-def args_with_blocks_of(args: Args, given: set[str], state: dict, path: str, flag: str) -> Args:
-    """--init-from (a new run) and --eval-only of the paper's file (which holds no arguments): this command
-    line's arguments, with the file's block count; exit 2 if --n-blocks says otherwise."""
-    n = blocks_of(state)
-    if "n_blocks" in given and args.n_blocks != n:
-        print(f"error: {flag}: --n-blocks {args.n_blocks}, but {path!r} holds a {n}-block agent", file=sys.stderr)
-        sys.exit(2)
-    return dataclasses.replace(args, n_blocks=n)
-
-
-# ------------------------------------------------------------------------------------------------
-# Outputs (plumbing; SPEC §10): progress.csv, TensorBoard, console, --eval-only results and videos
-# ------------------------------------------------------------------------------------------------
-class Logger:
-    """progress.csv (one row per epoch) and TensorBoard scalars with the same names. On resume, both are
-    rebuilt from the checkpoint's rows: an epoch logged after the checkpoint is dropped, one missing is
-    written, so every epoch appears once whenever the run was stopped."""
-
-    def __init__(self, run_dir: Path, rows: list[dict], resumed: bool):
-        from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (slow import, only when training)
-
-        self.path = run_dir / "progress.csv"
-        if resumed:
-            write_csv(self.path, rows)
-        # TensorBoard hides the events of steps >= purge_step, then gets the last row again.
-        purge = (rows[-1]["epoch"] if rows else 0) if resumed else None
-        self.writer = SummaryWriter(str(run_dir), purge_step=purge)
-        if resumed and rows:
-            self.add_scalars(rows[-1])
-
-    def log(self, row: dict):
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        with self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
-        self.add_scalars(row)
-
-    def add_scalars(self, row: dict):
-        for k, v in row.items():
-            if k != "epoch":
-                self.writer.add_scalar(tensorboard_tag(k), v, row["epoch"])
-        self.writer.flush()
-
-    def close(self):
-        self.writer.close()
-
-
-def tensorboard_tag(column: str) -> str:
-    """A progress.csv column's TensorBoard name, grouped: eval/, losses/, graph/, time/, charts/, and
-    sampler/ for the goal sampler's columns (whatever the others are not)."""
-    if column == "global_sr" or (column.startswith("sr_") and column != "sr_classes"):
-        return f"eval/{column}"
-    if column in LOSSES:
-        return f"losses/{column}"
-    if column.startswith("encounters_") or column in ("agent_nodes", "agent_edges", "sr_classes"):
-        return f"graph/{column}"
-    if column.startswith("time_") or column == "steps_per_second":
-        return f"time/{column}"
-    return f"charts/{column}" if column in ("goals", "segments", "env_steps", "train_success") else f"sampler/{column}"
-
-
-def write_csv(path: Path, rows: list[dict]):
-    """progress.csv holding exactly these rows, written then renamed."""
-    if not rows:  # stopped within the first epoch: no row yet, and no file (the next row writes the header)
-        path.unlink(missing_ok=True)
-        return
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
-
-
-def progress(text: str, final: bool = False):
-    """A live status line on a terminal; every line in a log file. Worker 0 speaks for all."""
-    if rank() > 0:
-        return
-    if sys.stdout.isatty():
-        print("\r" + text.ljust(100), end="\n" if final else "", flush=True)
-    else:
-        print(text, flush=True)
-
-
-# --- --eval-only: results and videos --------------------------------------------------------------
-def write_video(path: Path, frames: list[np.ndarray], fps: float):
-    """An H.264 mp4 through the ffmpeg binary that imageio-ffmpeg ships; written, then renamed."""
-    import imageio_ffmpeg  # noqa: PLC0415 (needed only for --capture-video)
-
-    tmp = path.with_name(path.stem + ".tmp.mp4")  # ffmpeg picks the container from the extension
-    height, width = frames[0].shape[:2]
-    writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, macro_block_size=1)
-    writer.send(None)  # start ffmpeg
-    for frame in frames:
-        writer.send(np.ascontiguousarray(frame))
-    writer.close()
-    os.replace(tmp, path)
-
-
-def rendering_problem() -> str | None:
-    """Why MuJoCo cannot render on this machine, or None."""
-    backend = os.environ.get("MUJOCO_GL")
-    if backend is None and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
-        return "no display, and MUJOCO_GL is not set"
-    import mujoco  # noqa: PLC0415 (needed only for --capture-video)
-
-    hook, sys.unraisablehook = sys.unraisablehook, lambda _: None  # a failed Renderer complains when freed
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            mujoco.Renderer(fetch5_env.build_model(og.MIN_BLOCKS), 8, 8).close()
-    except Exception as e:  # noqa: BLE001 (any GL failure means: no backend here)
-        return f"MUJOCO_GL={backend}: {type(e).__name__}: {' '.join(str(e).split())[:120]}"
-    finally:
-        gc.collect()
-        sys.unraisablehook = hook
-    return None
-
-
-def claim_name(folder: Path, stem: str) -> Path:
-    """folder/stem.json, or stem_2.json, stem_3.json...: the first name no earlier result holds, created
-    empty (so two evaluations in one folder never overwrite each other)."""
-    for n in itertools.count(1):
-        path = folder / (f"{stem}.json" if n == 1 else f"{stem}_{n}.json")
-        try:
-            path.open("x").close()
-            return path
-        except FileExistsError:
-            continue
-
-
-def evaluate_checkpoint(args: Args, state: dict, device) -> int:
-    """--eval-only: the saved agent's SR per class (SPEC §9), printed and saved as JSON beside the
-    checkpoint, named after it; with --capture-video, an mp4 per class of its first evaluation episodes."""
-    if args.capture_video and (why := rendering_problem()):  # every worker: all leave together
-        print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
-              "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
-        return 2
-    for key in ("buffer", "rng", "env_rng"):  # evaluation needs no replay, and draws from its own seeds
-        state.pop(key, None)
-    args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
-    run = Run(args, device)
-    paper = state.get("format") == "paper"
-    if paper:  # networks and normalizer are all it holds
-        load_weights(run.learner.agent, state, args, args.checkpoint, "--checkpoint")
-    else:
-        restore(run, state, args.checkpoint, "--checkpoint")
-    for w in run.workers:  # the evaluation's own seeds, not the run's
-        w.rng = np.random.default_rng(args.seed + w.index)
-        w.env.reset(seed=args.seed + w.index)
-    video = {} if args.capture_video and rank() == 0 else None
-    t = time.perf_counter()
-    sr = evaluate(run, video, oracle_planner(args) if args.plan_on == "oracle" else None)
-    if rank() > 0:
-        return 0
-    checkpoint = Path(args.checkpoint).resolve()
-    agent = "paper" if paper else f"epoch{run.epoch}"  # the paper's file does not say its epoch
-    planner = "_oracle" if args.plan_on == "oracle" else ""
-    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{planner}")
-    result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
-                  epoch=None if paper else run.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
-                  planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
-    tmp = out.with_suffix(".tmp")
-    try:
-        tmp.write_text(json.dumps(result, indent=2))
-        os.replace(tmp, out)
-    except BaseException:  # Ctrl-C, a full disk: no empty result left behind
-        out.unlink(missing_ok=True)
-        tmp.unlink(missing_ok=True)
-        raise
-    for name in run.classes:
-        print(f"{name:>6}  SR {sr[name]:.3f}")
-    who = "the paper's agent" if paper else f"epoch {run.epoch}"
-    print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, {who}, "
-          f"sub-goals planned on the {args.plan_on}'s graph)")  # fmt: skip
-    print(f"saved {out}")
-    for name, frames in (video or {}).items():
-        path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
-        path.parent.mkdir(exist_ok=True)
-        write_video(path, frames, fps=1 / run.workers[0].env.dt)
-        print(f"video {path} ({len(frames)} frames)")
+            return out.stop(run, None)
     return 0
 
 
 # ------------------------------------------------------------------------------------------------
-# Interruptions (plumbing): stop at a cycle boundary, so that a resumed run is the uninterrupted one
+# main: parse, build the run, train or evaluate it (the rest is plumbing.py's)
 # ------------------------------------------------------------------------------------------------
-class Stopper:
-    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop at the next cycle boundary, where a checkpoint
-    holds everything the rest of the run depends on. During an evaluation (one process) it stops at
-    once, saving the state from before the evaluation. A second signal aborts at once; the last
-    checkpoint stays as it was (saves are atomic)."""
-
-    def __init__(self, tmp: Path):
-        self.tmp, self.requested, self.abortable_now = tmp, False, False
-        for sig in (signal.SIGINT, signal.SIGTERM):  # set even if a parent started us with SIGINT ignored
-            signal.signal(sig, self.handle)
-
-    def handle(self, signum, frame):
-        name = signal.Signals(signum).name
-        if self.requested:
-            self.tmp.unlink(missing_ok=True)
-            os.write(2, f"\naborted by a second {name}: the last checkpoint is kept as it was\n".encode())
-            os._exit(130)
-        self.requested = True
-        if rank() == 0:  # os.write: print() inside a signal handler can meet a print it interrupted
-            os.write(2, f"\n{name}: stopping at the next cycle boundary with a checkpoint (again: abort)\n".encode())
-        if self.abortable_now:
-            raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def abortable(self, allowed: bool):
-        """Within this block a stop request interrupts at once (if allowed)."""
-        if allowed and self.requested:
-            raise KeyboardInterrupt
-        self.abortable_now = allowed
-        try:
-            yield
-        finally:
-            self.abortable_now = False
-
-    def agreed(self) -> bool:
-        """Whether any worker was asked to stop: every worker stops at the same cycle."""
-        return bool(all_sum(np.array([float(self.requested)]))[0] > 0)
-
-
-def stop_here(run: Run, state: dict | None, path: Path) -> int:
-    """Save the checkpoint a resume continues from (worker 0; None: it is saved already), say how to
-    resume, exit code 130."""
-    if rank() == 0:
-        if state is not None:
-            save_checkpoint(state, path)
-        c = state["counters"] if state is not None else dict(epoch=run.epoch, cycle=run.cycle)
-        print(f"interrupted: checkpoint saved to {path} (epoch {c['epoch']}, cycle {c['cycle']}); "
-              f"continue with --resume {path}", flush=True)  # fmt: skip
-    return 130
-
-
-# ------------------------------------------------------------------------------------------------
-# main (plumbing): parse, load what the flags name, then train or evaluate
-# ------------------------------------------------------------------------------------------------
-def start_run(args: Args, state: dict | None, device, init: dict | None = None) -> int:
-    """A new run folder, or the checkpoint's when resuming; then train. A new run may start from the
-    networks and normalizer of `init` (--init-from)."""
-    if state is None:
-        run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
-        if rank() == 0:
-            try:
-                run_dir.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                print(f"error: --runs-dir {args.runs_dir!r}: cannot create {str(run_dir)!r}: {e}", file=sys.stderr)
-                return 2
-            config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
-            (run_dir / "config.json").write_text(json.dumps(config, indent=2))
-    else:
-        run_dir = Path(args.resume).resolve().parent
-    run = Run(args, device)
-    if state is not None:
-        restore(run, state, args.resume, "--resume")
-        progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
-    elif init is not None:
-        load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
-        progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
-    logger = Logger(run_dir, run.rows, resumed=state is not None) if rank() == 0 else None
-    progress(f"run folder {run_dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
-    try:
-        return train_loop(run, logger, run_dir / "checkpoint.pt", Stopper(run_dir / "checkpoint.pt.tmp"))
-    finally:
-        if logger is not None:
-            logger.close()
-
-
 def main(argv=None) -> int:
-    args, state, init = parse_args(argv), None, None
-    if args.resume or args.eval_only:
-        flag, path = ("--resume", args.resume) if args.resume else ("--checkpoint", args.checkpoint)
-        state = load_checkpoint(path, flag)
-        if state.get("format") == "paper" and args.resume:
-            checkpoint_error(flag, path, "the paper's agent, not a run: train from it with --init-from PATH")
-        if state.get("format") == "paper":
-            args = args_with_blocks_of(args, given_flags(argv), state, path, flag)
-        else:
-            args = args_from_checkpoint(args, given_flags(argv), state, flag)
-        if args.resume and state["counters"]["epoch"] >= args.n_epochs:
-            print(f"nothing to do: {args.resume} has finished epoch {state['counters']['epoch'] - 1} "
-                  f"(--n-epochs {args.n_epochs}); give a larger --n-epochs to train on")  # fmt: skip
-            return 0
-    elif args.init_from:
-        init = load_checkpoint(args.init_from, "--init-from")
-        args = args_with_blocks_of(args, given_flags(argv), init, args.init_from, "--init-from")
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = init_workers(args)  # under torchrun: this process's device, and the job joined
-    torch.manual_seed(args.seed + rank())
-    try:
-        return evaluate_checkpoint(args, state, device) if args.eval_only else start_run(args, state, device, init)
-    finally:
-        if dist.is_initialized():
-            dist.destroy_process_group()
-
-
-def leave(code: int):
-    """Exit with code. A distributed worker leaves through os._exit, its outputs flushed and closed:
-    at interpreter exit, gloo's worker thread could abort the process (SIGABRT) after all the work."""
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    sys.exit(code)
+    args, state, init = plumbing.parse_command_line(Args, check_sampler_args, argv)  # bad input: one line, exit 2
+    if args is None:  # --resume of a run that has trained all its epochs (said so)
+        return 0
+    with plumbing.job(args) as device:  # torch's threads; under torchrun, this process's device, the job joined
+        torch.manual_seed(args.seed + rank())  # the initial weights (every process takes process 0's: SAC)
+        run = Run(args, device)
+        if args.eval_only:  # the checkpoint's agent: SR per class (SPEC §9), printed and saved beside it
+            planner = oracle_planner(args) if args.plan_on == "oracle" else None
+            return plumbing.evaluate_checkpoint(run, state, evaluate, planner)
+        with plumbing.RunFolder(run, state, init) as out:  # a new run folder, or the checkpoint's, restored
+            return train_loop(run, out)
 
 
 if __name__ == "__main__":
-    try:
-        exit_code = main()
-    except KeyboardInterrupt:
-        print("interrupted (nothing to save yet)", file=sys.stderr)
-        exit_code = 130
-    leave(exit_code)
+    plumbing.run_main(main)

@@ -30,6 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 import gangstr_hme as gh  # noqa: E402
+import plumbing  # noqa: E402
 
 
 def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
@@ -59,7 +60,7 @@ def cycle_profile(args) -> tuple[float, dict]:
     """Seconds per cycle of --num-envs 24 in this process, and their split."""
     cfg = gh.Args(n_blocks=args.n_blocks, num_envs=24, sp_ratio=0.2, cuda=args.cuda, seed=0)
     torch.manual_seed(0)
-    run = gh.Run(cfg, gh.init_workers(cfg))
+    run = gh.Run(cfg, plumbing.init_workers(cfg))
     learner = run.learner
     seconds = dict.fromkeys(["acting", "physics", "SAC updates"], 0.0)
     learner.agent.act = timed(seconds, "acting", learner.agent.act)

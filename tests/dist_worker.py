@@ -15,6 +15,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import gangstr_hme as gh  # noqa: E402
+import plumbing  # noqa: E402
 
 TINY = dict(n_blocks=3, n_cycles=3, n_segments=4, n_updates=2, batch_size=16, segment_len=10, stable_steps=3,
             eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3)  # fmt: skip
@@ -33,8 +34,8 @@ def fixed_batch(seed: int, n: int = 16) -> dict:
 def main(out: Path, num_envs: int):
     args = gh.Args(**TINY, num_envs=num_envs)
     torch.set_num_threads(1)
-    device = gh.init_workers(args)
-    r = gh.rank()
+    device = plumbing.init_workers(args)
+    r = plumbing.rank()
     torch.manual_seed(args.seed + r)
     run = gh.Run(args, device)  # parameters broadcast from worker 0 here
     learner = run.learner
@@ -75,7 +76,7 @@ def main(out: Path, num_envs: int):
         encountered=torch.tensor(sorted(learner.encountered)),
         segments=learner.segments,
         buffer_size=learner.buffer.size,
-        world=gh.world(),
+        world=plumbing.world(),
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
     if num_envs > 1:
@@ -88,4 +89,4 @@ def main(out: Path, num_envs: int):
 
 if __name__ == "__main__":
     num_envs = int(sys.argv[3]) if sys.argv[2:3] == ["--num-envs"] else 1
-    gh.leave(main(Path(sys.argv[1]), num_envs))  # as the scripts leave: gloo's thread can abort a normal exit
+    plumbing.leave(main(Path(sys.argv[1]), num_envs))  # as the scripts leave: gloo's thread can abort a normal exit

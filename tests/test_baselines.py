@@ -14,6 +14,7 @@ import torch
 
 import lp_baseline as lp
 import oracle_graph as og
+import plumbing
 import vds_baseline as vds
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -203,7 +204,7 @@ def test_a_tiny_temperature_draws_the_most_disputed_goal_instead_of_failing(monk
 def test_a_bad_sampler_value_exits_2_naming_it(script, argv, named, capsys):
     module = lp if script.startswith("lp") else vds
     with pytest.raises(SystemExit) as e:
-        module.parse_args(argv)
+        plumbing.parse_args(module.Args, module.check_sampler_args, argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and named in err and len(err.strip().splitlines()) == 1
 

@@ -22,6 +22,7 @@ from chisquare import uniform_pvalue
 
 import gangstr_hme as gh
 import oracle_graph as og
+import plumbing
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16",
@@ -66,11 +67,11 @@ def test_tiny_run_collects_updates_evaluates_logs_and_checkpoints(tmp_path, n_bl
     columns = [c for c in row if c != "epoch"]
     groups = ("eval", "losses", "graph", "time", "charts", "sampler")
     assert Counter(tag.split("/", 1)[-1] for tag in scalars) == Counter(columns)
-    assert sorted(scalars) == sorted(gh.tensorboard_tag(c) for c in columns)
+    assert sorted(scalars) == sorted(plumbing.tensorboard_tag(c) for c in columns)
     assert all(tag.split("/")[0] in groups and tag.count("/") == 1 for tag in scalars)
     assert {tag.split("/")[0] for tag in scalars} == set(groups)
     for c in columns:
-        ((step, value),) = scalars[gh.tensorboard_tag(c)]
+        ((step, value),) = scalars[plumbing.tensorboard_tag(c)]
         assert step == 0 and value == pytest.approx(float(row[c]), rel=1e-6, nan_ok=True), c
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert state["counters"]["epoch"] == 1 and state["args"]["n_blocks"] == n_blocks
@@ -601,7 +602,7 @@ def stop_then_resume(runs: Path, sig: signal.Signals, at: str, delay: float, **p
 
 def tensorboard_rows(run: Path) -> list[tuple[int, float]]:
     """The (epoch, global SR) pairs TensorBoard shows for a run folder."""
-    return tensorboard_scalars(run)[gh.tensorboard_tag("global_sr")]
+    return tensorboard_scalars(run)[plumbing.tensorboard_tag("global_sr")]
 
 
 @pytest.mark.parametrize(
@@ -690,7 +691,7 @@ def test_a_second_ctrl_c_aborts_at_once_and_keeps_the_last_checkpoint(tmp_path):
 )
 def test_bad_command_line_values_exit_2_naming_the_value(argv, named, capsys):
     with pytest.raises(SystemExit) as e:
-        gh.parse_args(argv)
+        plumbing.parse_args(gh.Args, gh.check_sampler_args, argv)
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert named in err and len(err.strip().splitlines()) == 1 and "Args(" not in err
@@ -726,8 +727,8 @@ def test_an_unreadable_checkpoint_exits_2_with_one_line(tmp_path, content):
 def saved_run(path: Path, module=gh, **fields) -> dict:
     """A fresh 3-block run's checkpoint at path (no training needed to test loading rules)."""
     run = module.Run(module.Args(n_blocks=3, buffer_size=400, runs_dir=str(path.parent), **fields), "cpu")
-    state = module.save_state(run)
-    module.save_checkpoint(state, path)
+    state = plumbing.save_state(run)
+    plumbing.save_checkpoint(state, path)
     return state
 
 
@@ -764,7 +765,7 @@ def test_a_file_that_is_not_this_scripts_checkpoint_gets_one_line_saying_what_it
 def test_flags_that_contradict_the_checkpoint_exit_2_naming_each(tmp_path, mode):
     state = saved_run(tmp_path / "checkpoint.pt", sp_ratio=0.3)
     state["counters"]["epoch"] = 1  # a finished epoch: resuming to --n-epochs 1 has nothing to do
-    gh.save_checkpoint(state, tmp_path / "checkpoint.pt")
+    plumbing.save_checkpoint(state, tmp_path / "checkpoint.pt")
     where = ["--resume", str(tmp_path / "checkpoint.pt"), "--n-epochs", "1"] if mode == "--resume" else [
         "--eval-only", "--checkpoint", str(tmp_path / "checkpoint.pt"), "--eval-goals-per-class", "1"]  # fmt: skip
     out = run_script(*where, "--n-blocks", "5", "--sp-ratio", "0.2", "--threads", "1", runs_dir=tmp_path)
@@ -791,7 +792,7 @@ def test_eval_only_on_a_corrupt_checkpoint_exits_2_naming_it(tmp_path):
 @pytest.mark.parametrize("flag", ["--resume", "--checkpoint"])
 def test_a_checkpoint_from_other_networks_exits_2_naming_the_mismatch(tmp_path, flag):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    state = gh.save_state(run)
+    state = plumbing.save_state(run)
     state["actor"]["mean.weight"] = state["actor"].pop("head.out.weight")  # as an older version named it
     path = tmp_path / "other.pt"
     torch.save(state, path)
@@ -841,7 +842,7 @@ def test_eval_only_prints_sr_per_class_saves_it_and_films_playable_mp4s(tmp_path
 
 def test_a_second_evaluation_of_a_checkpoint_is_saved_beside_the_first_never_over_it(tmp_path):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
+    plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "agent.pt")
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--eval-goals-per-class", "1", "--threads", "1"]
     for _ in range(2):
         assert run_script(*argv, runs_dir=tmp_path).returncode == 0
@@ -855,7 +856,7 @@ def test_eval_only_evaluates_the_checkpoint_of_a_resumed_finished_run(tmp_path):
     path = tmp_path / "agent.pt"
     run = gh.Run(gh.Args(n_blocks=3, n_epochs=1, buffer_size=400, resume=str(path)), torch.device("cpu"))
     run.epoch = 1  # its one epoch done
-    gh.save_checkpoint(gh.save_state(run), path)
+    plumbing.save_checkpoint(plumbing.save_state(run), path)
     out = run_script("--eval-only", "--checkpoint", str(path), "--eval-goals-per-class", "1", runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     assert "global  SR" in out.stdout and "nothing to do" not in out.stdout
@@ -864,7 +865,7 @@ def test_eval_only_evaluates_the_checkpoint_of_a_resumed_finished_run(tmp_path):
 
 def test_capture_video_without_a_display_or_gl_backend_exits_2_saying_what_to_install(tmp_path):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
+    plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "agent.pt")
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "PYOPENGL_PLATFORM")}
     cmd = [sys.executable, "gangstr_hme.py", "--eval-only", "--checkpoint", str(tmp_path / "agent.pt"),
            "--capture-video", "--runs-dir", str(tmp_path)]  # fmt: skip

@@ -18,6 +18,7 @@ import torch.nn as nn
 
 import gangstr_hme as gh
 import oracle_graph as og
+import plumbing
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16", "--segment-len", "10",
@@ -59,11 +60,11 @@ def authors_state_dict(layers: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> 
 
 def write_paper_file(path: Path, agent: gh.SAC, replace: dict | None = None) -> list:
     """The authors' file from our agent: a legacy (pre-zip) torch.save of [o_mean, o_std, g_mean, g_std, actor,
-    critic], float32 numpy arrays and their layer names (gh.PAPER_LAYERS inverted: a layer of ours that two
+    critic], float32 numpy arrays and their layer names (plumbing.PAPER_LAYERS inverted: a layer of ours that two
     of theirs map to is split in equal parts, in the table's order). `replace` swaps items by index."""
     ours = {"actor": agent.actor.state_dict(), "critic": agent.critic.state_dict()}
     parts: dict[tuple[str, str], list[str]] = {}
-    for theirs, net, layer in gh.PAPER_LAYERS:
+    for theirs, net, layer in plumbing.PAPER_LAYERS:
         parts.setdefault((net, layer), []).append(theirs)
     layers = {"actor": {}, "critic": {}}
     for (net, layer), names in parts.items():
@@ -88,11 +89,11 @@ def test_the_papers_file_loads_into_our_networks_with_identical_actions_and_q_va
     items = write_paper_file(tmp_path / "gangstr.pt", original)
     assert len(items[4]) == 10 and items[4]["rho_actor.mean_linear.weight"].shape == (4, 256)  # the authors' sizes
     assert items[5]["phi_critic.linear4.weight"].shape == (256, 53) and items[0].shape == (85,)
-    state = gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--checkpoint")
+    state = plumbing.load_checkpoint(gh.Args, str(tmp_path / "gangstr.pt"), "--checkpoint")
     assert state["format"] == "paper" and state["n_blocks"] == 5
     loaded = our_agent(5, seed=1)  # other weights and statistics, all overwritten
     loaded.normalizer = gh.Normalizer(85)
-    gh.load_weights(loaded, state, gh.Args(n_blocks=5), "gangstr.pt", "--checkpoint")
+    plumbing.load_weights(loaded, state, gh.Args(n_blocks=5), "gangstr.pt", "--checkpoint")
 
     rng = np.random.default_rng(2)
     obs = (rng.normal(size=(8, 85)) * 4 + 1).astype(np.float32)  # some values beyond the +-5 clip
@@ -176,7 +177,7 @@ def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path
     change(items)
     torch.save(items, tmp_path / "gangstr.pt", _use_new_zipfile_serialization=False)
     with pytest.raises(SystemExit) as e:
-        gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--checkpoint")
+        plumbing.load_checkpoint(gh.Args, str(tmp_path / "gangstr.pt"), "--checkpoint")
     err = capsys.readouterr().err
     assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and says in err, err
 
@@ -244,9 +245,9 @@ def test_eval_only_of_the_papers_file_plans_on_the_oracle_graph_and_says_so_in_t
 # ------------------------------------------------------------------------------------------------
 def test_the_papers_statistics_count_as_init_prior_count_observations_of_prior_data(tmp_path):
     items = write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
-    state = gh.load_checkpoint(str(tmp_path / "gangstr.pt"), "--init-from")
+    state = plumbing.load_checkpoint(gh.Args, str(tmp_path / "gangstr.pt"), "--init-from")
     agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
-    gh.load_weights(agent, state, gh.Args(n_blocks=3, init_prior_count=1000), "gangstr.pt", "--init-from")
+    plumbing.load_weights(agent, state, gh.Args(n_blocks=3, init_prior_count=1000), "gangstr.pt", "--init-from")
     x = np.random.default_rng(5).uniform(-3, 4, size=(250, 55))
     agent.normalizer.update(x)
     # Pooling 1000 observations of the file's mean and std with these 250: the pooled mean and variance.
@@ -292,10 +293,10 @@ def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its
     run.learner.agent.normalizer.update(np.random.default_rng(0).normal(size=(70, 55)))
     run.learner.graph.add_config(int(og.to_mask(og.make_config(3))))
     run.epoch = 4
-    gh.save_checkpoint(gh.save_state(run), tmp_path / "ours.pt")
-    state = gh.load_checkpoint(str(tmp_path / "ours.pt"), "--init-from")
+    plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "ours.pt")
+    state = plumbing.load_checkpoint(gh.Args, str(tmp_path / "ours.pt"), "--init-from")
     fresh = gh.Run(gh.Args(n_blocks=3, buffer_size=400, seed=1), torch.device("cpu"))
-    gh.load_weights(fresh.learner.agent, state, fresh.args, "ours.pt", "--init-from")
+    plumbing.load_weights(fresh.learner.agent, state, fresh.args, "ours.pt", "--init-from")
     mine, theirs = fresh.learner.agent, run.learner.agent
     assert mine.normalizer.count == 70 and np.array_equal(mine.normalizer.mean, theirs.normalizer.mean)
     assert all(torch.equal(p, q) for p, q in zip(mine.actor.parameters(), theirs.actor.parameters(), strict=True))
@@ -304,7 +305,7 @@ def test_init_from_our_own_checkpoint_takes_its_networks_and_normalizer_with_its
 
 def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, runs_dir=str(tmp_path)), torch.device("cpu"))
-    gh.save_checkpoint(gh.save_state(run), tmp_path / "agent.pt")
+    plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "agent.pt")
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--plan-on", "oracle",
             "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
     out = run_script(*argv, runs_dir=tmp_path)
