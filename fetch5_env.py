@@ -29,8 +29,9 @@ import oracle_graph as og
 
 # Bump ENV_VERSION whenever the physics or the observations change (what a policy sees or does): the
 # training scripts store it in their checkpoints and refuse one trained on another version.
-# 1: first release; 2: Fetch's finger offset, contact and limit parameters, mat2euler angles, workspace.
-ENV_VERSION = 2
+# 1: first release; 2: Fetch's finger offset, contact and limit parameters, mat2euler angles, workspace;
+# 3: Fetch's finger inertials, so that the gripper resists rotation as Fetch's does (SPEC §3).
+ENV_VERSION = 3
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "fetch_manipulate.xml"
 N_SUBSTEPS = 20  # 20 x 0.002 s physics steps per control step (SPEC §3)
 MAX_EPISODE_STEPS = 40  # one segment (SPEC §5)

@@ -325,7 +325,71 @@ def test_finger_boxes_sit_8mm_inward_with_fetchs_contact_and_limit_parameters():
 
 
 # ------------------------------------------------------------------------------------------------
-# 4c. The workspace box (SPEC §3)
+# 4c. The gripper resists rotation as Fetch's does (SPEC §3)
+# ------------------------------------------------------------------------------------------------
+# A diagonal descent, forward in x and down at equal rates with the fingers open, from a start pose
+# that brings the bottom of finger_r (the +y finger) to the height of a block's top face as the finger
+# passes over the block's centre: about 0.8 m/s along the diagonal, as an agent comes down on a block.
+LANDING = np.array([0.7, 0.0, -0.7, 1.0])
+LANDING_RUN = 0.12  # metres of descent (and of forward travel) from the start pose to the top face
+FINGER_BOTTOM = 0.0385 - fe.GRIP_OFFSET  # a finger box's lower end, below the grip site
+
+
+def land_a_finger(env, block):
+    """Open the fingers, come down diagonally (LANDING) until finger_r touches the top face of `block`
+    (resting upright), then lift. Returns the grip site's speed over the landing step (m/s; None if no
+    finger landed on the top face) and the gripper's largest tilt seen after a step (rad)."""
+    obs = hold(env, 1.0, 10)
+    finger_y = 0.0159 + obs["observation"][3] - 0.008  # finger_r's box centre, off the grip site in y
+    top = env.block_positions()[block] + (0, 0, fe.BLOCK_HALF)
+    start = top + (-LANDING_RUN, -finger_y, FINGER_BOTTOM + LANDING_RUN)
+    move_to(env, start + (0, 0, 0.05), finger=1)  # from above: the finger clears the block
+    move_to(env, start, finger=1, tol=0.002)
+    obs = hold(env, 1.0, 5)  # at rest
+    speed, tilt = None, gripper_tilt(env)
+    for _ in range(2 * round(LANDING_RUN / (fe.ACTION_SCALE * LANDING[0]))):  # the face is about halfway
+        before = obs["observation"][:3]
+        obs, *_ = env.step(LANDING)
+        tilt = max(tilt, gripper_tilt(env))
+        if finger_on_top_face(env, block):
+            speed = np.linalg.norm(obs["observation"][:3] - before) / env.dt
+            break
+    for _ in range(10):
+        env.step([0.0, 0.0, 1.0, 1.0])  # lift off
+        tilt = max(tilt, gripper_tilt(env))
+    return speed, tilt
+
+
+def gripper_tilt(env) -> float:
+    """Angle (rad) between the gripper's pointing axis (its body +x) and straight down."""
+    return float(np.arccos(np.clip(-env.data.xmat[env._gripper][6], -1.0, 1.0)))
+
+
+def finger_on_top_face(env, block) -> bool:
+    """Whether a finger geom touches `block` on its top face: a contact with a vertical normal, at the
+    height of the top face, inside its square."""
+    m, c = env.model, env.data.contact
+    fingers = [m.geom("finger_r_geom").id, m.geom("finger_l_geom").id]
+    box = m.body_geomadr[m.body(f"object{block}").id]
+    pair = np.isin(c.geom, fingers).any(axis=1) & (c.geom == box).any(axis=1)
+    centre = env.block_positions()[block]
+    on_top = (np.abs(c.pos[:, 2] - centre[2] - fe.BLOCK_HALF) < 0.003) & (np.abs(c.frame[:, 2]) > 0.95)
+    inside = (np.abs(c.pos[:, :2] - centre[:2]) < fe.BLOCK_HALF).all(axis=1)
+    return bool((pair & on_top & inside).any())
+
+
+def test_a_finger_landing_on_a_blocks_top_face_at_0_8_m_s_rolls_the_gripper_under_3_degrees():
+    env = make(5)
+    env.place_blocks(scene((1.30, 0.70, 0)))
+    speed, tilt = land_a_finger(env, 0)
+    assert speed is not None, "no finger came down on the block's top face"
+    assert 0.6 < speed < 1.0, f"landed at {speed:.2f} m/s, not about 0.8"  # SPEC §3's landing
+    # Fetch's gripper turns about 1 degree here; one whose inertia is its boxes' alone, about 17 (SPEC §3).
+    assert np.degrees(tilt) < 3.0, f"the gripper rolled {np.degrees(tilt):.1f} degrees"
+
+
+# ------------------------------------------------------------------------------------------------
+# 4d. The workspace box (SPEC §3)
 # ------------------------------------------------------------------------------------------------
 # The grip site sits GRIP_OFFSET below the gripper body that follows the clipped mocap. The weld is
 # soft: in free space the body lags or overshoots the target by under 1 mm, but a finger pressed
@@ -381,9 +445,9 @@ def test_no_400_step_action_sequence_takes_the_gripper_out_of_the_workspace(seed
     assert_stays_in_the_workspace(np.repeat(actions, hold_steps, axis=0), seed % 100)
 
 
-def test_env_version_names_this_physics_as_version_2():
-    # Checkpoints store it and are refused under another version: bumped with this physics (issue 13).
-    assert isinstance(fe.ENV_VERSION, int) and fe.ENV_VERSION == 2
+def test_env_version_names_this_physics_as_version_3():
+    # Checkpoints store it and are refused under another version: bumped with this physics (issue 27).
+    assert isinstance(fe.ENV_VERSION, int) and fe.ENV_VERSION == 3
 
 
 # ------------------------------------------------------------------------------------------------
