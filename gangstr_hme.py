@@ -766,12 +766,19 @@ class Worker:
     GoalSampler's."""
 
     def __init__(self, args: Args, index: int):
-        self.index, seed = index, args.seed + index
+        self.index = index
         render_mode = "rgb_array" if args.capture_video else None
         self.env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks, render_mode=render_mode)
-        self.env.reset(seed=seed)
-        self.rng = np.random.default_rng(seed)
+        self.seed(args.seed + index)
         self.left, self.segments = 0, []  # segments it may still run this cycle; those it ran
+
+    def seed(self, *words: int):
+        """Two independent random streams from the seed words (SPEC §3, §11): the worker's own (self.rng: cycle
+        kinds, goals, paths, noise, HER draws) and its env's (block placements). Both are children of one
+        SeedSequence: seeding both with the same number would make them one stream read twice."""
+        mine, env = np.random.SeedSequence(words).spawn(2)
+        self.rng = np.random.default_rng(mine)
+        self.env.reset(seed=int(env.generate_state(1)[0]))
 
 
 def current_config(env) -> int:
@@ -780,10 +787,11 @@ def current_config(env) -> int:
 
 def follow_path(w: Worker, path: list[int], deterministic: bool, frames: list | None = None):
     """Program step: one segment per sub-goal of path[1:], moving on only while each is reached and
-    the worker has segments left. Returns whether the path's last config was reached."""
+    the worker has segments left. Returns whether the path's last config was reached, or None if the
+    cycle's budget ran out first: an attempt cut off is no outcome, neither success nor failure."""
     for sub in path[1:]:
         if w.left <= 0:
-            return False
+            return None
         segment = yield Request(sub, deterministic, frames)
         if not segment.success:
             return False
@@ -792,7 +800,7 @@ def follow_path(w: Worker, path: list[int], deterministic: bool, frames: list | 
 
 def pursue(learner: Learner, w: Worker, goal: int, explore: bool, deterministic: bool):
     """Program step: a path from the current config to goal (sample_path on the semantic graph), then
-    follow it. Returns whether goal was reached."""
+    follow it. Returns whether goal was reached (None: cut off by the budget, see follow_path)."""
     t = time.perf_counter()
     path = sample_path(learner.graph, current_config(w.env), goal, w.rng, explore)
     learner.plan_seconds += time.perf_counter() - t
@@ -899,8 +907,8 @@ class Sampler:
       stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
     and check_sampler_args(args), a function: the first bad value of its options, described, or None.
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
-    goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome). A sampler (the
-    section after this one) overrides what it changes."""
+    goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome: an attempt the
+    cycle's budget cut off has none). A sampler (the section after this one) overrides what it changes."""
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
@@ -915,9 +923,11 @@ class Sampler:
         a sampled path; until the cycle's segments are spent."""
         while w.left > 0:
             w.env.reset()
+            self.goals += 1
             goal = self.autotelic_goal(w)
             reached = yield from pursue(self.learner, w, goal, explore=True, deterministic=False)
-            self.goal_outcome(w, goal, reached)
+            if reached is not None:  # None: the cycle's budget cut the attempt off, which is no outcome
+                self.goal_outcome(w, goal, reached)
 
     def autotelic_goal(self, w: Worker) -> int:
         """G_s.sample_node(): uniform over the agent's nodes; before any exists, a uniform random +-1 vector."""
@@ -927,7 +937,6 @@ class Sampler:
         return node
 
     def goal_outcome(self, w: Worker, goal: int, reached: bool):
-        self.goals += 1
         self.stats["autotelic_goals"] += 1
         self.stats["autotelic_reached"] += reached
 

@@ -333,8 +333,7 @@ def load_state(run, s: dict):
     run.sampler.load_state_dict(s)
     if rank() > 0:  # the checkpoint holds process 0's random streams and replays: the others start anew
         for w in run.workers:
-            w.rng = np.random.default_rng([run.args.seed + w.index, run.epoch, run.cycle])
-            w.env.reset(seed=int(w.rng.integers(2**31)))
+            w.seed(run.args.seed + w.index, run.epoch, run.cycle)
         run.sampler.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
         run.tally.update(wins=0, tries=0)
         return
@@ -721,8 +720,7 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
     else:
         restore(run, state, args.checkpoint, "--checkpoint")
     for w in run.workers:  # the evaluation's own seeds, not the run's
-        w.rng = np.random.default_rng(args.seed + w.index)
-        w.env.reset(seed=args.seed + w.index)
+        w.seed(args.seed + w.index)
     video = {} if args.capture_video and rank() == 0 else None
     t = time.perf_counter()
     sr = evaluate(run, video, planner)
