@@ -12,7 +12,7 @@ its `evaluate`, and its sampler's `check_sampler_args`; a sampler is reached onl
 
 Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
-folder and the top level's steps (parse_command_line, init_workers, RunFolder, evaluate_checkpoint).
+folder and the top level's steps (parse_command_line, job, RunFolder, evaluate_checkpoint, run_main).
 """
 
 from __future__ import annotations
