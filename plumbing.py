@@ -5,10 +5,12 @@ checkpoints and the paper's trained agent, outputs and interruptions.
 A reader of the paper can skip this file: gangstr_hme.py, lp_baseline.py and vds_baseline.py each hold
 the whole algorithm (CleanRL's single-file rule) and import what is here, as CleanRL's scripts import
 cleanrl_utils. It imports no training script and knows no goal sampler. A script passes in what is its
-own: its Args class (the command line and checkpoints read its fields and docstrings), its Run (every
-script's Run has the same fields: args, workers, learner, sampler, classes, epoch, cycle, tally, rows),
-its `evaluate`, and its sampler's `check_sampler_args`; a sampler is reached only through the hooks of
-`Sampler`'s docstring. Arrows run one way: scripts -> plumbing -> fetch5_env, oracle_graph.
+own: its Args class (the command line and checkpoints read its fields and docstrings), its run, its
+`evaluate`, and its sampler's `check_sampler_args`; a sampler is reached only through the hooks of
+`Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
+(each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
+agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments and
+plan_seconds. Arrows run one way: scripts -> plumbing -> fetch5_env, oracle_graph.
 
 Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
@@ -567,16 +569,19 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
 
 
 def cycle_progress(run, detail: str):
-    """The in-epoch console line: where the run is, the script's `detail`, env steps per second this epoch,
-    and the time left in the epoch and in the run, from this epoch's cycles so far (and the last epoch's
-    evaluation time, once there is one)."""
+    """The in-epoch console line, after the first cycle and every tenth of an epoch: where the run is, the
+    script's `detail`, env steps per second while training (collecting and updating; the epoch's line also
+    counts its evaluation), and the time left in the epoch and in the run, from this epoch's cycles so far
+    and the last epoch's evaluation time (none yet in the first epoch)."""
     a, tally = run.args, run.tally
+    if run.cycle != 1 and run.cycle % max(1, a.n_cycles // 10) != 0:
+        return
     seconds = tally["collect"] + tally["update"]
     rate = (run.learner.segments * a.segment_len - tally["env_steps_at_start"]) / max(seconds, 1e-9)
     per_cycle, per_eval = seconds / max(1, run.cycle), run.rows[-1]["time_eval"] if run.rows else 0.0
     epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval
     run_left = epoch_left + (a.n_epochs - run.epoch - 1) * (per_cycle * a.n_cycles + per_eval)
-    progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | {rate:.0f} steps/s | "
+    progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | train {rate:.0f} steps/s | "
              f"left: epoch {duration(epoch_left)}, run {duration(run_left)}")  # fmt: skip
 
 
@@ -728,8 +733,8 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
         return 0
     checkpoint = Path(args.checkpoint).resolve()
     agent = "paper" if paper else f"epoch{run.epoch}"  # the paper's file does not say its epoch
-    planner = "_oracle" if args.plan_on == "oracle" else ""
-    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{planner}")
+    suffix = "_oracle" if args.plan_on == "oracle" else ""
+    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{suffix}")
     result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
                   epoch=None if paper else run.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
@@ -827,19 +832,26 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
               "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
         sys.exit(2)
     if args.eval_only:  # evaluation stores no segment
-        args = dataclasses.replace(args, resume="", buffer_size=args.segment_len)
+        args = dataclasses.replace(args, buffer_size=args.segment_len)
     return args, state, init
 
 
 class RunFolder:
-    """Where a training run writes (SPEC §10): a new folder runs/{exp_name}__{seed}__{time} holding
-    config.json, or --resume's checkpoint's folder; the run restored from that checkpoint, or started
-    from --init-from's networks; then progress.csv and TensorBoard (process 0), the checkpoint's path and
-    the Stopper that Ctrl-C and SIGTERM talk to. A context: the logs are closed at its end."""
+    """A training run's outputs and stops (SPEC §10): the run restored from --resume's checkpoint (or started
+    from --init-from's networks), in that checkpoint's folder or a new one, runs/{exp_name}__{seed}__{time},
+    holding config.json; progress.csv and TensorBoard (process 0); the checkpoint; the Stopper that Ctrl-C
+    and SIGTERM talk to. A context: the logs are closed at its end."""
 
     def __init__(self, run, state: dict | None, init: dict | None = None):
         args = run.args
-        if state is None:
+        if state is not None:
+            restore(run, state, args.resume, "--resume")
+            progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
+        if init is not None:  # before the folder: a file that does not fit exits 2 with nothing written
+            load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
+        if state is not None:
+            self.dir = Path(args.resume).resolve().parent
+        else:
             self.dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
             if rank() == 0:
                 try:
@@ -849,16 +861,12 @@ class RunFolder:
                     sys.exit(2)
                 config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
                 (self.dir / "config.json").write_text(json.dumps(config, indent=2))
-        else:
-            self.dir = Path(args.resume).resolve().parent
-            restore(run, state, args.resume, "--resume")
-            progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
         if init is not None:
-            load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
             progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
         self.logger = Logger(self.dir, run.rows, resumed=state is not None) if rank() == 0 else None
         self.checkpoint = self.dir / "checkpoint.pt"
         self.stopper = Stopper(self.dir / "checkpoint.pt.tmp")
+        self.saved_at, self.before_evaluation = None, None  # (epoch, cycle) the checkpoint holds; see evaluate
         device = run.learner.agent.device
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
 
@@ -869,6 +877,24 @@ class RunFolder:
         if self.logger is not None:
             self.logger.close()
 
+    def stop_requested(self) -> bool:
+        """Whether Ctrl-C or SIGTERM reached any process: all stop at the same cycle boundary."""
+        return self.stopper.agreed()
+
+    def evaluate(self, run, evaluate) -> dict | None:
+        """evaluate(run), timed for the epoch's row. In one process a stop request ends it at once: None,
+        and the checkpoint stop() saves is the state from before it (under torchrun the processes finish it)."""
+        self.before_evaluation = save_state(run) if world() == 1 else None  # cheap: views of the live tensors
+        t = time.perf_counter()
+        try:
+            with self.stopper.abortable(allowed=self.before_evaluation is not None):
+                sr = evaluate(run)
+        except KeyboardInterrupt:
+            return None
+        run.tally["eval"] = time.perf_counter() - t
+        self.before_evaluation = None
+        return sr
+
     def end_epoch(self, run, sr: dict[str, float]):
         """The epoch's row (finish_epoch); a checkpoint, then the row in progress.csv and TensorBoard (a
         row is never logged unless a checkpoint holds it); the console's epoch line."""
@@ -876,15 +902,20 @@ class RunFolder:
         if self.logger is not None:
             save_checkpoint(save_state(run), self.checkpoint)
             self.logger.log(row)
+        self.saved_at = (run.epoch, run.cycle)
         per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
                  f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
                  final=True)  # fmt: skip
 
-    def stop(self, run, state: dict | None) -> int:
-        """Stopped on request: save the checkpoint a resume continues from (process 0; None: it is saved
-        already), say how to resume, exit code 130."""
+    def stop(self, run) -> int:
+        """Stopped on request: process 0 saves the checkpoint --resume continues from (where the run stands,
+        or the state before an evaluation the request interrupted; nothing if the last checkpoint holds it)
+        and says how to resume; exit code 130."""
         if rank() == 0:
+            state = self.before_evaluation
+            if state is None and self.saved_at != (run.epoch, run.cycle):
+                state = save_state(run)
             if state is not None:
                 save_checkpoint(state, self.checkpoint)
             c = state["counters"] if state is not None else dict(epoch=run.epoch, cycle=run.cycle)

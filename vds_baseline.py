@@ -38,7 +38,7 @@ import torch.nn.functional as F
 
 import fetch5_env
 import oracle_graph as og
-import plumbing  # what is not the algorithm: command line, checkpoints, outputs, interruptions
+import plumbing  # what is not the algorithm: command line, processes, checkpoints, outputs, interruptions
 from plumbing import all_gather_rows, all_sum, broadcast_params, gather_workers, rank, sum_grads, summed, world
 
 
@@ -1197,26 +1197,19 @@ def train_loop(run: Run, out: plumbing.RunFolder) -> int:
     """Epochs of cycles; each epoch ends with an evaluation, a checkpoint, then its progress.csv row (in that
     order: a row is never logged unless a checkpoint holds it). Ctrl-C or SIGTERM stops it at a cycle boundary
     (or during a one-process evaluation) with a checkpoint that --resume continues exactly (plumbing.Stopper)."""
-    args, stopper = run.args, out.stopper
-    while run.epoch < args.n_epochs:
-        while run.cycle < args.n_cycles:
+    while run.epoch < run.args.n_epochs:
+        while run.cycle < run.args.n_cycles:
             one_cycle(run)
-            if run.cycle == 1 or run.cycle % max(1, args.n_cycles // 10) == 0:
-                critic_loss = run.tally["losses"]["critic_loss"]
-                plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,} | critic loss {critic_loss:.3f}")
-            if stopper.agreed():
-                return out.stop(run, plumbing.save_state(run) if rank() == 0 else None)
-        before_eval = plumbing.save_state(run) if world() == 1 else None  # cheap: views of the live tensors
-        t = time.perf_counter()
-        try:
-            with stopper.abortable(allowed=before_eval is not None):
-                sr = evaluate(run)
-        except KeyboardInterrupt:
-            return out.stop(run, before_eval)
-        run.tally["eval"] = time.perf_counter() - t
+            critic_loss = run.tally["losses"]["critic_loss"]
+            plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,} | critic loss {critic_loss:.3f}")
+            if out.stop_requested():
+                return out.stop(run)
+        sr = out.evaluate(run, evaluate)  # SR per class (SPEC §9); None: a stop request interrupted it
+        if sr is None:
+            return out.stop(run)
         out.end_epoch(run, sr)  # its row (plumbing.finish_epoch), checkpointed, then logged
-        if stopper.agreed():
-            return out.stop(run, None)
+        if out.stop_requested():
+            return out.stop(run)
     return 0
 
 
@@ -1233,7 +1226,7 @@ def main(argv=None) -> int:
         if args.eval_only:  # the checkpoint's agent: SR per class (SPEC §9), printed and saved beside it
             planner = oracle_planner(args) if args.plan_on == "oracle" else None
             return plumbing.evaluate_checkpoint(run, state, evaluate, planner)
-        with plumbing.RunFolder(run, state, init) as out:  # a new run folder, or the checkpoint's, restored
+        with plumbing.RunFolder(run, state, init) as out:  # --resume's run restored, or a new one; logs, stops
             return train_loop(run, out)
 
 

@@ -64,10 +64,20 @@ def test_the_progress_line_shows_steps_per_second_and_the_time_left_in_the_epoch
     # evaluation (25 s) = 42 s.
     plumbing.cycle_progress(fake_run(cycle=4, seconds=8.0, steps=400, epoch=1, last_eval=5.0), "nodes 7")
     line = capsys.readouterr().out
-    assert "epoch 1 cycle 4/10 | nodes 7 | 50 steps/s | left: epoch 0:17, run 0:42" in line
+    assert "epoch 1 cycle 4/10 | nodes 7 | train 50 steps/s | left: epoch 0:17, run 0:42" in line
     # Before any evaluation, the estimate counts the cycles alone: 12 s, then 2 x 20 s more.
     plumbing.cycle_progress(fake_run(cycle=4, seconds=8.0, steps=400, epoch=0, last_eval=None), "x")
     assert "left: epoch 0:12, run 0:52" in capsys.readouterr().out
+
+
+def test_the_progress_line_comes_after_the_first_cycle_and_every_tenth_of_an_epoch(capsys):
+    printed = []
+    for cycle in range(1, 21):
+        run = fake_run(cycle=cycle, seconds=2.0 * cycle, steps=100 * cycle, epoch=0, last_eval=None)
+        run.args.n_cycles = 20
+        plumbing.cycle_progress(run, "x")
+        printed += [cycle] if capsys.readouterr().out else []
+    assert printed == [1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20]
 
 
 @pytest.mark.parametrize("seconds, shown", [(0, "0:00"), (59.6, "1:00"), (125, "2:05"), (3725, "1:02:05")])
