@@ -137,9 +137,10 @@ def test_lp_goals_come_from_discovered_configs_of_the_drawn_class():
     goals = {sampler.autotelic_goal(w) for _ in range(50)}
     assert goals == set(og.to_mask(og.evaluation_classes(3)["C1"]).tolist())
     sampler.goal_outcome(w, c01, True)
-    assert w.attempts == [(0, True)] and w.drawn_from == 0
+    sampler.goal_outcome(w, c01, False)
+    assert w.attempts == [(0, True), (0, False)] and w.drawn_from == 0
     sampler.after_cycle()  # the cycle's outcomes are recorded at its end (with every worker's, SPEC §11)
-    assert list(sampler.lp.outcomes[0]) == [1.0] and w.attempts == []
+    assert list(sampler.lp.outcomes[0]) == [1.0, 0.0] and w.attempts == []
 
 
 # ------------------------------------------------------------------------------------------------
@@ -179,7 +180,8 @@ def test_goals_are_drawn_in_proportion_to_softmax_of_disagreement_over_temperatu
     monkeypatch.setattr(run.sampler, "disagreement", lambda w, cand: np.array([scores[int(c)] for c in cand]))
     draws = [run.sampler.autotelic_goal(run.workers[0]) for _ in range(6000)]
     freq = np.array([draws.count(m) for m in nodes]) / len(draws)
-    expected = vds.softmax(np.array([0.0, 0.5, 1.0]) / temperature)
+    weights = np.exp(np.array([0.0, 0.5, 1.0]) / temperature)  # SPEC §8: softmax(score / temperature)
+    expected = weights / weights.sum()
     np.testing.assert_allclose(freq, expected, atol=0.02)
 
 
@@ -226,8 +228,13 @@ def test_vds_heads_regress_the_critics_td_targets():
     from test_gangstr import filled_buffer  # noqa: PLC0415
 
     buf = filled_buffer()
-    losses = []
+    sampler, losses = run.sampler, []
     for _ in range(60):
         agent.update(buf.sample(64, [rng], 0.8, "final"))
-        losses.append(run.sampler.train_vds(agent.last_batch, agent.last_target)["vds_loss"])
+        batch, target = agent.last_batch, agent.last_target
+        with torch.no_grad():  # SPEC §8: each head's squared error to the critic's TD target, summed over heads
+            heads = sampler.vds(sampler.readout(batch["obs"], batch["ag"], batch["g"], batch["action"]))
+            by_hand = ((heads - target[None]) ** 2).mean(1).sum().item()
+        assert sampler.train_vds(batch, target)["vds_loss"] == pytest.approx(by_hand, rel=1e-5)
+        losses.append(by_hand)
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])

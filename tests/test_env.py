@@ -129,10 +129,13 @@ def test_block_velocities_are_scaled_by_dt_and_relative_to_the_gripper():
     env = make(3)
     obs = settle(env, 1)
     for _ in range(3):
+        before = obs["observation"][:3].copy()
         obs, *_ = env.step([1.0, 0.0, 0.0, 0.0])  # the gripper moves, the blocks rest
     o = obs["observation"]
     grip_vel = o[5:8]
-    assert grip_vel[0] > 0.01  # a few cm per 0.04 s step
+    # Velocity x dt is metres per 0.04 s step: about the last step's displacement (a few cm), not m/s.
+    step = o[:3] - before
+    assert step[0] > 0.01 and 0.5 < grip_vel[0] / step[0] < 2 and np.abs(grip_vel[1:]).max() < 0.005
     for i in range(3):
         np.testing.assert_allclose(o[10 + 15 * i + 9 : 10 + 15 * i + 12], -grip_vel, atol=1e-3)
 
@@ -468,6 +471,14 @@ def test_ten_full_x_actions_move_the_grip_site_20_to_35_cm():
         obs, *_ = env.step([1.0, 0.0, 0.0, 0.0])
     dx, dy, dz = obs["observation"][:3] - start
     assert 0.20 <= dx <= 0.35 and abs(dy) < 0.005 and abs(dz) < 0.005
+
+
+def test_each_step_puts_the_mocap_target_0_05_per_unit_action_from_the_gripper_body():
+    env = make(3)
+    for a in ([1.0, 0.0, 0.0, 0.0], [0.3, -0.6, 0.2, 0.0], [-1.0, 0.5, 1.0, 1.0], [0.0, 0.0, -0.4, -1.0]):
+        body = env.data.body("gripper").xpos.copy()  # where the step snaps the mocap to (SPEC §3)
+        env.step(a)
+        np.testing.assert_allclose(env.data.mocap_pos[0], body + 0.05 * np.array(a[:3]), atol=1e-9)
 
 
 def test_finger_action_opens_to_about_5cm_and_closes_again():

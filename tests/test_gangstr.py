@@ -2,6 +2,7 @@
 the training loop, its outputs, resume and command line (SPEC §5, §6, §9, §10)."""
 
 import csv
+import dataclasses
 import itertools
 import json
 import math
@@ -115,6 +116,23 @@ def test_gnn_outputs_are_invariant_to_a_consistent_permutation_of_the_blocks(n):
     assert not torch.allclose(forward(agent, obs, ag, -goal, act), ref)  # the goal matters
 
 
+def test_a_blocks_message_is_the_max_over_its_outgoing_edges_of_the_message_net_on_the_spec_edge_input():
+    n = 3
+    agent = gh.SAC(gh.Args(n_blocks=n), 10 + 15 * n, torch.device("cpu"))
+    obs, ag, goal, _ = random_inputs(n)
+    _, blocks = gh.split_obs(obs, n)
+    gap = goal - ag
+    close = {frozenset(p): k for k, p in enumerate(og.close_pairs(n).tolist())}
+    above = {tuple(p): len(close) + k for k, p in enumerate(og.above_pairs(n).tolist())}
+    expected = torch.empty(len(obs), n, 24)
+    with torch.no_grad():
+        for i in range(n):  # SPEC §5: edge (i, j) reads [gap at close{i,j}, gap at i on j, pos i, pos j]
+            edges = [torch.cat([gap[:, [close[frozenset((i, j))], above[i, j]]], blocks[:, i, :3], blocks[:, j, :3]],
+                               dim=1) for j in range(n) if j != i]  # fmt: skip
+            expected[:, i] = torch.stack([agent.critic.message(e) for e in edges]).amax(0)
+        torch.testing.assert_close(agent.critic.messages(agent.gi, blocks, gap), expected)
+
+
 @pytest.mark.parametrize("out_relu", [True, False])
 def test_every_net_is_linear_relu_linear_with_the_final_relu_only_where_the_spec_has_it(out_relu):
     torch.manual_seed(0)
@@ -176,30 +194,64 @@ def test_acting_follows_every_update_and_checkpoint_load_of_the_trained_weights(
     assert not any(isinstance(t, torch.Tensor) and t.requires_grad for t in acting)
 
 
+def sample_origins(buf, b) -> np.ndarray:
+    """(segment, step) of each transition of batch b, found by its observation (all differ in filled_buffer)."""
+    seg_len = buf.actions.shape[2]
+    where = {buf.obs[0, e, t].tobytes(): (e, t) for e in range(buf.size) for t in range(seg_len)}
+    return np.array([where[o.tobytes()] for o in b["obs"]])
+
+
 def test_her_final_relabels_about_80_percent_with_the_last_achieved_config_and_recomputes_rewards():
     buf = filled_buffer()
     rng = np.random.default_rng(1)
     b = buf.sample(20000, [rng], her_prob=1 - 1 / (1 + 4), strategy="final")
-    finals = buf.ag[0, :, -1].astype(np.float32)
-    relabelled = (b["g"][:, None, :] == finals[None]).all(-1).any(-1)
+    seg = sample_origins(buf, b)[:, 0]
+    relabelled = (b["g"] == buf.ag[0, seg, -1]).all(1)  # the final config of the transition's own segment
     assert abs(relabelled.mean() - 0.8) < 0.015
-    assert ((b["g"] == 1).all(1) | relabelled).all()  # every goal is the original or a final config
+    assert ((b["g"] == 1).all(1) | relabelled).all()  # every goal is the original or its segment's final config
     np.testing.assert_array_equal(b["reward"], (b["ag_next"] == b["g"]).all(1).astype(np.float32))
     assert 0 < b["reward"].mean() < 1
 
 
 def test_her_future_relabels_with_a_later_achieved_config_of_the_same_segment():
-    buf = filled_buffer(n_seg=1, T=10)
+    buf = filled_buffer(n_seg=20, T=10)
     b = buf.sample(4000, [np.random.default_rng(2)], her_prob=1.0, strategy="future")
-    later = np.array([[(buf.ag[0, 0, u] == g).all() for u in range(11)] for g in b["g"][:200]])
-    t = np.array([np.flatnonzero((buf.obs[0, 0] == o).all(1))[0] for o in b["obs"][:200]])
-    assert all(later[i, t[i] + 1 :].any() for i in range(200))
+    seg, t = sample_origins(buf, b).T
+    matches = (buf.ag[0, seg] == b["g"][:, None, :]).all(-1)  # (4000, 11): the own segment's configs equal to g
+    later = np.arange(11)[None, :] > t[:, None]
+    assert (matches & later).any(1).all()  # each goal: an achieved config of its segment after its step
+    assert len(np.unique(seg)) == 20
+
+
+@pytest.mark.parametrize("her_k, share", [(4, 0.8), (1, 0.5), (0, 0.0)])
+def test_training_relabels_1_minus_1_over_1_plus_her_k_of_its_goals(monkeypatch, her_k, share):
+    """SPEC §5: HER relabels with probability 1 - 1 / (1 + k), 0.8 for the paper's k = 4 (Learner.train)."""
+    learner = gh.Learner(gh.Args(n_blocks=3, her_k=her_k, n_updates=1, batch_size=4000), torch.device("cpu"))
+    learner.buffer = filled_buffer()  # goals never achieved: a goal that is not all ones was relabelled
+    batches = []
+    monkeypatch.setattr(learner.agent, "update", lambda batch: batches.append(batch) or {})
+    learner.agent.last_batch = learner.agent.last_target = None
+    learner.train([np.random.default_rng(0)])
+    (batch,) = batches
+    assert abs((batch["g"] != 1).any(1).mean() - share) < 0.03
+
+
+def squashed_gaussian(actor, body, blocks, msg, noise):
+    """SPEC §5's action and log-probability, written out: u = mean + std x noise, a = tanh(u),
+    log pi = log N(u; mean, std) - sum log(1 - a^2 + 1e-6) (the tanh correction)."""
+    mean, log_std = actor(body, blocks, msg)
+    u = mean + log_std.exp() * noise
+    a = torch.tanh(u)
+    gauss = torch.distributions.Normal(mean, log_std.exp()).log_prob(u).sum(-1)
+    return a, gauss - torch.log(1 - a.pow(2) + 1e-6).sum(-1)
 
 
 def test_sac_losses_follow_the_spec_on_a_tiny_batch():
     args = gh.Args(n_blocks=3)
     agent = gh.SAC(args, 55, torch.device("cpu"))
     agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)  # mean 0, std 1: normalizing is clipping
+    torch.manual_seed(1)
+    agent.critic_target.load_state_dict(gh.Critic(3).state_dict())  # a target critic unlike the critic
     obs, ag, goal, act = random_inputs(3, batch=3)
     obs2, ag2, _, _ = random_inputs(3, batch=3, seed=1)
     batch = dict(obs=obs.numpy(), obs_next=obs2.numpy(), ag=ag.numpy(), ag_next=ag2.numpy(), g=goal.numpy(),
@@ -213,30 +265,38 @@ def test_sac_losses_follow_the_spec_on_a_tiny_batch():
     b2, k2 = gh.split_obs(t["obs_next"], 3)
     with torch.no_grad():
         msg2 = agent.critic.messages(agent.gi, k2, t["g"] - t["ag_next"])
-        a2, logp2 = agent.actor.sample(b2, k2, msg2, t["noise_next"])
+        a2, logp2 = squashed_gaussian(agent.actor, b2, k2, msg2, t["noise_next"])
         tq = agent.critic_target.q(b2, k2, a2, agent.critic_target.messages(agent.gi, k2, t["g"] - t["ag_next"]))
         y = t["reward"] + 0.99 * (torch.min(tq[0], tq[1]) - 0.2 * logp2)
         msg = agent.critic.messages(agent.gi, k1, t["g"] - t["ag"])
         q1, q2 = agent.critic.q(b1, k1, t["action"], msg)
         expected_critic = ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()
-        pi, logp = agent.actor.sample(b1, k1, msg, t["noise_pi"])
+        pi, logp = squashed_gaussian(agent.actor, b1, k1, msg, t["noise_pi"])
         qp = agent.critic.q(b1, k1, pi, msg)
         expected_actor = (0.2 * logp - torch.min(qp[0], qp[1])).mean()
-    torch.testing.assert_close(critic_loss, expected_critic)
-    torch.testing.assert_close(actor_loss, expected_actor)
+    torch.testing.assert_close(critic_loss, expected_critic, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(actor_loss, expected_actor, rtol=1e-5, atol=1e-5)
 
 
 def test_actor_loss_moves_the_actor_only_and_the_message_net_learns_from_the_critic_loss():
-    agent = gh.SAC(gh.Args(n_blocks=3, lr_critic=0.0), 55, torch.device("cpu"))
-    agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
-    buf = filled_buffer()
-    before = {k: v.clone() for k, v in agent.critic.state_dict().items()}
+    batch = filled_buffer().sample(32, [np.random.default_rng(0)], 0.8, "final")
+    agents = []
+    for _ in range(2):  # the same networks twice: one updated, one to take each loss's gradient alone
+        torch.manual_seed(0)
+        agents.append(gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu")))
+        agents[-1].normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
+    agent, alone = agents
     actor_before = [p.clone() for p in agent.actor.parameters()]
-    agent.update(buf.sample(32, [np.random.default_rng(0)], 0.8, "final"))
-    # lr_critic = 0: had the actor loss leaked into the critic, Adam would still not move it; check grads
-    msg_grads = [p.grad for p in agent.critic.message.parameters()]
-    assert all(g is not None and g.abs().sum() > 0 for g in msg_grads)
-    assert all(torch.equal(v, agent.critic.state_dict()[k]) for k, v in before.items())
+    agent.update(batch)
+    critic_loss, actor_loss, _, _ = alone.losses(alone.to_tensors(batch))
+    critic_params, actor_params = list(alone.critic.parameters()), list(alone.actor.parameters())
+    # The critic, its message net included, gets the critic loss's gradient and nothing of the actor loss's;
+    # the actor gets the actor loss's.
+    for p, g in zip(agent.critic.parameters(), torch.autograd.grad(critic_loss, critic_params), strict=True):
+        torch.testing.assert_close(p.grad, g)
+    for p, g in zip(agent.actor.parameters(), torch.autograd.grad(actor_loss, actor_params), strict=True):
+        torch.testing.assert_close(p.grad, g)
+    assert all(p.grad.abs().sum() > 0 for p in agent.critic.message.parameters())
     assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters(), strict=True))
 
 
@@ -251,6 +311,12 @@ def test_target_critic_is_polyak_averaged_with_0_95_every_second_update():
     agent.update(buf.sample(32, [rng], 0.8, "final"))
     for t0, t1, p in zip(target0, agent.critic_target.parameters(), agent.critic.parameters(), strict=True):
         torch.testing.assert_close(t1, 0.95 * t0 + 0.05 * p)
+    target2 = [p.clone() for p in agent.critic_target.parameters()]
+    agent.update(buf.sample(32, [rng], 0.8, "final"))  # the third: no target update
+    assert all(torch.equal(a, b) for a, b in zip(target2, agent.critic_target.parameters(), strict=True))
+    agent.update(buf.sample(32, [rng], 0.8, "final"))  # the fourth: one
+    for t2, t4, p in zip(target2, agent.critic_target.parameters(), agent.critic.parameters(), strict=True):
+        torch.testing.assert_close(t4, 0.95 * t2 + 0.05 * p)
 
 
 def test_a_compiled_update_computes_the_eager_updates_losses_and_gradients():
@@ -342,6 +408,19 @@ def test_unstable_segments_leave_the_graph_unchanged():
     stable = gh.Segment(seg.obs, np.tile(og.make_config(3, close=[(0, 1)]), (11, 1)), seg.g, seg.actions, False, True)
     learner.learn_from([[stable]])
     assert learner.graph.n_nodes == 3
+
+
+def test_autotelic_goals_are_uniform_over_the_agents_nodes_and_random_configs_before_any():
+    run = gh.Run(gh.Args(n_blocks=3, buffer_size=400), torch.device("cpu"))
+    (w,) = run.workers
+    before = {run.sampler.autotelic_goal(w) for _ in range(200)}
+    assert len(before) > 100  # a uniform random +-1 vector: 512 configs for 3 blocks
+    graph = run.learner.graph
+    graph.add_config(M(3, close=[(0, 1)]))  # 3 nodes
+    graph.add_config(M(3, close=[(0, 1)], above=[(0, 1)]))  # 6 more
+    counts = Counter(run.sampler.autotelic_goal(w) for _ in range(2700))
+    assert set(counts) == set(graph.masks) and len(counts) == 9
+    assert uniform_pvalue(list(counts.values())) > 1e-3  # SPEC §6: uniform over all nodes
 
 
 class ScriptedConfigs:
@@ -502,6 +581,19 @@ def test_the_k_shortest_paths_on_real_configs_are_the_shortest_of_different_shap
     assert sorted(len(p) for p in found) == sorted(shortest_of_shape.values())[:5]
 
 
+def test_training_plans_take_a_shortest_path_with_probability_shortest_ratio_else_the_safest():
+    g = random_graph(4, 0.0, 0)
+    g.args = gh.Args(n_blocks=3, shortest_ratio=0.2, k_shortest=1)
+    for (u, v), p in {(0, 3): 0.1, (0, 1): 0.9, (1, 2): 0.9, (2, 3): 0.9}.items():  # short and risky, or safe
+        g._add_edge(u, v, len(g.sr))
+        g.sr.append(p)
+    rng = np.random.default_rng(0)
+    paths = Counter(tuple(gh.sample_path(g, 0, 3, rng, explore=True)) for _ in range(2000))
+    assert set(paths) == {(0, 3), (0, 1, 2, 3)}
+    assert abs(paths[0, 3] / 2000 - 0.2) < 4 * np.sqrt(0.2 * 0.8 / 2000)
+    assert {tuple(gh.sample_path(g, 0, 3, rng, explore=False)) for _ in range(50)} == {(0, 1, 2, 3)}
+
+
 def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_configs():
     args = gh.Args(n_blocks=3, max_path_len=4, shortest_ratio=0.0)
     g = random_graph(12, 0.0, 0)
@@ -546,6 +638,47 @@ RESUME = ["--sp-ratio", "0", "--n-blocks", "3", "--n-cycles", "2", "--n-segments
           "--batch-size", "16", "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "2",
           "--threads", "1", "--seed", "3"]  # fmt: skip
 TIMING = ("time_", "steps_per_second")
+
+
+def test_a_run_restored_from_a_checkpoint_runs_the_next_cycle_as_the_original_does(tmp_path):
+    """save_state and load_state in one process, mid-epoch (SPEC §10): every part of the run the next cycle
+    depends on (random streams, networks, optimizers, normalizer, graph, replay, pairs, counters) comes back.
+    (The smoke tests below check whole runs through the command line.)"""
+    args = gh.Args(n_blocks=3, sp_ratio=0.5, n_segments=4, segment_len=5, stable_steps=2, n_updates=3, batch_size=8,
+                   buffer_size=400, runs_dir=str(tmp_path))  # fmt: skip
+    torch.manual_seed(0)
+    run = gh.Run(args, torch.device("cpu"))
+    for _ in range(2):
+        gh.one_cycle(run)
+    run.rows = [{"epoch": 0, "global_sr": 0.25}]  # an earlier epoch's row
+    plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "checkpoint.pt")
+    torch.manual_seed(1)  # other networks, and fresh streams, replay, graph: all must come from the file
+    restored = gh.Run(args, torch.device("cpu"))
+    plumbing.load_state(restored, plumbing.load_checkpoint(gh.Args, str(tmp_path / "checkpoint.pt")))
+    assert run.sampler.internalization_buffer and restored.sampler.internalization_buffer == \
+        run.sampler.internalization_buffer  # fmt: skip
+    for r in (run, restored):
+        gh.one_cycle(r)
+    (w,), (v,) = run.workers, restored.workers
+    assert w.rng.bit_generator.state == v.rng.bit_generator.state
+    assert w.env.np_random.bit_generator.state == v.env.np_random.bit_generator.state
+    assert all(np.array_equal(a.obs, b.obs) and a.g.tolist() == b.g.tolist() for a, b in zip(w.segments, v.segments,
+                                                                                             strict=True))  # fmt: skip
+    mine, theirs = run.learner, restored.learner
+    for net in ("actor", "critic", "critic_target"):
+        for (name, p), q in zip(getattr(mine.agent, net).named_parameters(), getattr(theirs.agent, net).parameters(),
+                                strict=True):  # fmt: skip
+            assert torch.equal(p, q), f"{net}.{name}"
+    for field in ("sum", "sumsq", "count"):
+        assert np.array_equal(getattr(mine.agent.normalizer, field), getattr(theirs.agent.normalizer, field)), field
+    for field in ("obs", "ag", "g", "actions", "ptr", "size"):
+        assert np.array_equal(getattr(mine.buffer, field), getattr(theirs.buffer, field)), field
+    assert (mine.graph.masks, mine.graph.edge_log, mine.graph.sr) == (theirs.graph.masks, theirs.graph.edge_log,
+                                                                      theirs.graph.sr)  # fmt: skip
+    assert run.sampler.internalization_buffer == restored.sampler.internalization_buffer
+    assert (mine.agent.n_updates, mine.segments, run.cycle, run.sampler.goals, run.rows) == (
+        theirs.agent.n_updates, theirs.segments, restored.cycle, restored.sampler.goals, restored.rows)  # fmt: skip
+    assert {k: run.tally[k] for k in ("wins", "tries")} == {k: restored.tally[k] for k in ("wins", "tries")}
 
 
 def test_resuming_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
@@ -711,9 +844,19 @@ def test_an_unwritable_runs_dir_exits_2_naming_it(tmp_path):
 
 def test_help_shows_every_default():
     out = subprocess.run([sys.executable, "gangstr_hme.py", "--help"], cwd=ROOT, capture_output=True, text=True)
-    text = " ".join(out.stdout.split())
-    for name, value in [("sp-ratio", "0.0"), ("batch-size", "256"), ("her-strategy", "'final'"), ("cuda", "False")]:
-        assert re.search(rf"--{name}\b.*?\(default: {re.escape(value)}\)", text), name
+    # Each option's entry: from its line "  --flag ..." to the next option's.
+    entries = {}
+    for line in out.stdout.split("\n"):
+        if line.startswith("  --"):
+            flag = line.split()[0].rstrip(",")
+            entries[flag] = line
+        elif entries and line.startswith("   "):
+            entries[flag] += " " + line.strip()
+    for field in dataclasses.fields(gh.Args):
+        flag = "--" + field.name.replace("_", "-")
+        assert flag in entries, flag
+        text = " ".join(entries[flag].split())
+        assert text.endswith(f"(default: {field.default!r})"), text
 
 
 @pytest.mark.parametrize("content", [b"not a checkpoint", b""])

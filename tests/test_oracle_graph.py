@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from chisquare import uniform_pvalue
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -273,7 +274,7 @@ def test_goals_are_sampled_uniformly_from_a_class(oracle5):
     goals = oracle5.sample_goal("S2", rng, size=4000)
     assert (oracle5.class_of(goals) == "S2").all()
     counts = np.unique(og.to_mask(goals), return_counts=True)[1]
-    assert len(counts) == 20 and counts.min() > 120  # 200 expected each
+    assert len(counts) == 20 and uniform_pvalue(counts) > 1e-3  # 200 expected each
     with pytest.raises(ValueError, match="'S6'"):
         oracle5.sample_goal("S6", rng)
 

@@ -58,19 +58,40 @@ def authors_state_dict(layers: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> 
     return root.state_dict()
 
 
+# The authors' layers (issue 15, read from their file): name -> (our network, our layer, the rows of it that
+# the layer fills, its weight's shape). Written out here, apart from the loader's own table, so that the round
+# trip checks that table against the paper's roles: SPEC §5's order, the actor head's mean rows above its
+# log-std rows. (The shapes do not depend on the number of blocks.)
+AUTHORS_LAYERS = {
+    "phi_actor.linear1": ("actor", "node.hidden", None, (256, 49)),
+    "phi_actor.linear2": ("actor", "node.out", None, (147, 256)),
+    "rho_actor.linear1": ("actor", "head.hidden", None, (256, 147)),
+    "rho_actor.mean_linear": ("actor", "head.out", slice(0, 4), (4, 256)),
+    "rho_actor.log_std_linear": ("actor", "head.out", slice(4, 8), (4, 256)),
+    "mp_critic.linear1": ("critic", "message.hidden", None, (256, 8)),
+    "mp_critic.linear2": ("critic", "message.out", None, (24, 256)),
+    "phi_critic.linear1": ("critic", "q_nodes.0.hidden", None, (256, 53)),
+    "phi_critic.linear2": ("critic", "q_nodes.0.out", None, (159, 256)),
+    "phi_critic.linear4": ("critic", "q_nodes.1.hidden", None, (256, 53)),
+    "phi_critic.linear5": ("critic", "q_nodes.1.out", None, (159, 256)),
+    "rho_critic.linear1": ("critic", "q_heads.0.hidden", None, (256, 159)),
+    "rho_critic.linear3": ("critic", "q_heads.0.out", None, (1, 256)),
+    "rho_critic.linear4": ("critic", "q_heads.1.hidden", None, (256, 159)),
+    "rho_critic.linear6": ("critic", "q_heads.1.out", None, (1, 256)),
+}
+
+
 def write_paper_file(path: Path, agent: gh.SAC, replace: dict | None = None) -> list:
     """The authors' file from our agent: a legacy (pre-zip) torch.save of [o_mean, o_std, g_mean, g_std, actor,
-    critic], float32 numpy arrays and their layer names (plumbing.PAPER_LAYERS inverted: a layer of ours that two
-    of theirs map to is split in equal parts, in the table's order). `replace` swaps items by index."""
+    critic], float32 numpy arrays and their layer names (AUTHORS_LAYERS). `replace` swaps items by index."""
     ours = {"actor": agent.actor.state_dict(), "critic": agent.critic.state_dict()}
-    parts: dict[tuple[str, str], list[str]] = {}
-    for theirs, net, layer in plumbing.PAPER_LAYERS:
-        parts.setdefault((net, layer), []).append(theirs)
     layers = {"actor": {}, "critic": {}}
-    for (net, layer), names in parts.items():
-        weights = ours[net][f"{layer}.weight"].chunk(len(names))
-        biases = ours[net][f"{layer}.bias"].chunk(len(names))
-        layers[net].update(zip(names, zip(weights, biases, strict=True), strict=True))
+    for theirs, (net, layer, rows, shape) in AUTHORS_LAYERS.items():
+        weight, bias = ours[net][f"{layer}.weight"], ours[net][f"{layer}.bias"]
+        if rows is not None:
+            weight, bias = weight[rows], bias[rows]
+        assert weight.shape == shape and bias.shape == shape[:1], theirs
+        layers[net][theirs] = (weight, bias)
     dim = og.config_dim(agent.gi.n)
     items = [agent.normalizer.mean.astype(np.float32), agent.normalizer.std.astype(np.float32),
              np.zeros(dim, np.float32), np.ones(dim, np.float32),

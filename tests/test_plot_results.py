@@ -93,3 +93,15 @@ def test_welch_p_value_matches_the_student_t_tail_with_two_degrees_of_freedom():
     assert pr.welch_p(np.array([0.1, 0.2, 0.15]), np.array([0.9, 0.95, 0.85])) < 0.01
     assert pr.welch_p(np.array([0.5, 0.6]), np.array([0.5, 0.6])) == pytest.approx(1.0)
     assert math.isnan(pr.welch_p(np.array([0.5]), np.array([0.5, 0.6])))
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_welch_degrees_of_freedom_follow_the_unequal_variances(n):
+    # y has no spread: Welch's df is (vx + 0)^2 / (vx^2 / (n - 1)) = n - 1, Student's would be n + 2 - 2 = n.
+    # Two-sided tails of the t distribution in closed form: df 1, 1 - 2 atan|t| / pi; df 3, 1 - 2 / pi
+    # (atan(|t| / sqrt 3) + (|t| / sqrt 3) / (1 + t^2 / 3)).
+    x, y = np.arange(n, dtype=float), np.array([5.0, 5.0])
+    t = (x.mean() - 5.0) / math.sqrt(x.var(ddof=1) / n)
+    s = abs(t) / math.sqrt(3)
+    expected = 1 - 2 * math.atan(abs(t)) / math.pi if n == 2 else 1 - 2 / math.pi * (math.atan(s) + s / (1 + s * s))
+    assert pr.welch_p(x, y) == pytest.approx(expected, rel=1e-9)

@@ -1,0 +1,394 @@
+"""Can the tests fail? Breaks the code one small change at a time, each in a fresh copy of the project,
+and runs the tests that claim the behaviour it breaks: a mutation they do not notice ("survived") is a
+test that cannot fail (STYLE.md §6). Not part of the test suite or CI: the whole list takes several minutes.
+
+    python benchmarks/mutations.py                # every mutation
+    python benchmarks/mutations.py -k her --jobs 2
+    python benchmarks/mutations.py --list
+
+When to run it: after changing a test or the code a test guards, and before a release. A new test gets
+a mutation here (a sign, an index, a constant of the code it checks), and must kill it.
+
+Each mutation replaces text that must occur exactly once in its file (the list fails loudly when the code
+moves on without it). The copy holds the files git knows of, as they are in the working tree (tracked,
+and untracked but not ignored); the working tree itself is never touched. A mutation is "killed" when its
+guard (pytest arguments: test files, then -k EXPR) fails, or errors at collection, or runs out of time.
+A survivor whose behaviour SPEC leaves free is marked harmless, with the reason, and counted apart.
+First, the guards run on the unmutated copy: a guard that fails there would "kill" anything.
+"""
+
+import argparse
+import concurrent.futures
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@dataclass(frozen=True)
+class Mutation:
+    name: str
+    file: str
+    old: str | tuple[str, ...]  # text that occurs once in file (a tuple: several edits, one mutation)
+    new: str | tuple[str, ...]
+    guard: str  # pytest arguments: test files, then optionally -k EXPR
+    harmless: str = ""  # why a survivor is fine: the behaviour it changes is free under SPEC
+
+    def edits(self) -> list[tuple[str, str]]:
+        old, new = (x if isinstance(x, tuple) else (x,) for x in (self.old, self.new))
+        return list(zip(old, new, strict=True))
+
+
+G, LP, VDS, ENV, ORACLE = "gangstr_hme.py", "lp_baseline.py", "vds_baseline.py", "fetch5_env.py", "oracle_graph.py"
+P = "plumbing.py"
+TG, TH, TB, TE, TO = (f"tests/test_{x}.py" for x in ("gangstr", "hme", "baselines", "env", "oracle_graph"))
+
+# fmt: off
+MUTATIONS = [
+    # --- issue 26: the mutations the suite used to miss ------------------------------------------------
+    Mutation("paper layers: mean and log-std heads swapped", P,
+             'mean_linear", "actor", "head.out"),\n    ("rho_actor.log_std_linear',
+             'log_std_linear", "actor", "head.out"),\n    ("rho_actor.mean_linear',
+             "tests/test_paper_agent.py -k test_the_papers_file_loads"),
+    Mutation("log pi without - log_std", G, "-0.5 * noise.pow(2) - log_std - 0.5", "-0.5 * noise.pow(2) - 0.5",
+             f"{TG} -k test_sac_losses_follow_the_spec"),
+    Mutation("HER relabels from the next segment", G, "g[her] = self.ag[w[her], ep[her], future[her]]",
+             "g[her] = self.ag[w[her], (ep[her] + 1) % self.size, future[her]]", f"{TG} -k test_her_"),
+    Mutation("HER switched off in training", G, "her_prob = 1 - 1 / (1 + args.her_k)", "her_prob = 0.0",
+             f"{TG} -k test_training_relabels"),
+    Mutation("actor loss through the live critic, messages not detached", G,
+             "q_pi = torch.min(*self.acting_critic.q(body, blocks, pi, msg.detach()))",
+             "q_pi = torch.min(*self.critic.q(body, blocks, pi, msg))", f"{TG} -k test_actor_loss_moves"),
+    Mutation("VDS softmax of twice the logits", VDS, "e = np.exp(x - x.max())", "e = np.exp(2 * (x - x.max()))",
+             f"{TB} -k test_goals_are_drawn_in_proportion"),
+    Mutation("VDS heads regress 0 x target", VDS, "mse = ((self.vds(features) - target[None]) ** 2)",
+             "mse = ((self.vds(features) - 0 * target[None]) ** 2)", f"{TB} -k test_vds_heads_regress"),
+    Mutation("velocities not scaled by dt", ENV,
+             ("obs[5:8] = grip_vel * dt", "blocks[:, 9:12] = (qvel[:, :3] - grip_vel) * dt"),
+             ("obs[5:8] = grip_vel", "blocks[:, 9:12] = qvel[:, :3] - grip_vel"),
+             f"{TE} -k test_block_velocities_are_scaled_by_dt"),
+    Mutation("action scale 0.065", ENV, "ACTION_SCALE = 0.05 ", "ACTION_SCALE = 0.065 ",
+             f"{TE} -k mocap_target_0_05_per_unit"),
+    Mutation("action scale 0.042", ENV, "ACTION_SCALE = 0.05 ", "ACTION_SCALE = 0.042 ",
+             f"{TE} -k mocap_target_0_05_per_unit"),
+    Mutation("class goals: the last member drawn 4x as often", ORACLE,
+             "return members[rng.integers(len(members), size=size)]",
+             "return members[np.minimum(rng.integers(len(members) + 3, size=size), len(members) - 1)]",
+             f"{TO} -k test_goals_are_sampled_uniformly"),
+    Mutation("Welch's df replaced by Student's", "plot_results.py",
+             "df = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1))", "df = len(x) + len(y) - 2",
+             "tests/test_plot_results.py -k welch"),
+    Mutation("target critic updated every update after the first", G,
+             "if self.n_updates % self.args.target_update_every == 0:",
+             "if self.n_updates >= self.args.target_update_every:", f"{TG} -k test_target_critic_is_polyak"),
+    Mutation("--help without one default", P,
+             'f" (default: {f.default!r})" if with_defaults else ""',
+             'f" (default: {f.default!r})" if with_defaults and f.name != "n_epochs" else ""',
+             f"{TG} -k test_help_shows_every_default"),
+    Mutation("chi-square series branch returns 0.5", "tests/chisquare.py",
+             "return 1.0 - total * math.exp(log_prefactor)", "return 0.5", "tests/test_chisquare.py"),
+    Mutation("lockstep workers train on worker 0's replay only", G,
+             "self.buffer.sample(args.batch_size, rngs, her_prob",
+             "self.buffer.sample(args.batch_size, rngs[:1], her_prob",
+             "tests/test_distributed.py -k test_two_workers_in_one_process"),
+    # --- the environment (SPEC §3) ---------------------------------------------------------------------
+    Mutation("close threshold 0.095", ENV, "CLOSE_DIST = 0.09 ", "CLOSE_DIST = 0.095 ", f"{TE} -k thresholds"),
+    Mutation("above from 2 cm up", ENV, "ABOVE_DZ = 0.05, (0.03, 0.06)", "ABOVE_DZ = 0.05, (0.02, 0.06)",
+             f"{TE} -k thresholds"),
+    Mutation("finger action sign", ENV, "self._finger_qpos + a[3]", "self._finger_qpos - a[3]",
+             f"{TE} -k test_finger_action_opens"),
+    Mutation("reset accepts blocks closer than a diagonal", ENV,
+             "if np.all(np.linalg.norm(placed - xy, axis=1) >= MIN_SPAWN_DIST):", "if True:",
+             f"{TE} -k test_resets_rest_blocks"),
+    Mutation("no workspace clip", ENV,
+             "np.minimum(np.maximum(target, WORKSPACE_LOW, out=target), WORKSPACE_HIGH, out=self.data.mocap_pos[0])",
+             "self.data.mocap_pos[0] = target", f"{TE} -k toward_a_corner"),
+    Mutation("roll sign", ENV, "np.arctan2(-m[..., 5], m[..., 8]", "np.arctan2(m[..., 5], m[..., 8]",
+             f"{TE} -k test_euler_from_mat_recovers"),
+    Mutation("success on any predicate", ENV, "return np.all(np.asarray(achieved_goal) ==",
+             "return np.any(np.asarray(achieved_goal) ==", "tests/test_success.py -k one_success_rule"),
+    # --- the oracle (SPEC §2, §4) ----------------------------------------------------------------------
+    Mutation("a third overlap is stable", ORACLE, "STABLE_OVERLAP = 0.5 ", "STABLE_OVERLAP = 0.3 ",
+             f"{TO} -k test_partial_overlap"),
+    Mutation("no change counts as a small step", ORACLE, "return (diff != 0) & ((diff", "return ((diff",
+             f"{TO} -k test_small_step_needs"),
+    # --- SAC, HER, normalizer, GNN (SPEC §5) -----------------------------------------------------------
+    Mutation("entropy bonus sign in the TD target", G, "(q_next - a.alpha * logp2)", "(q_next + a.alpha * logp2)",
+             f"{TG} -k test_sac_losses_follow_the_spec"),
+    Mutation("twin-Q max in the TD target", G, "q_next = torch.min(*self.critic_target.q(",
+             "q_next = torch.max(*self.critic_target.q(", f"{TG} -k test_sac_losses_follow_the_spec"),
+    Mutation("TD target on the online critic's messages", G, "tmsg2 = self.critic_target.messages(gi, blocks2, gap2)",
+             "tmsg2 = self.critic.messages(gi, blocks2, gap2)", f"{TG} -k test_sac_losses_follow_the_spec"),
+    Mutation("tanh correction sign", G, "torch.log(1 - a.pow(2) + 1e-6)", "torch.log(1 + a.pow(2) + 1e-6)",
+             f"{TG} -k test_sac_losses_follow_the_spec"),
+    Mutation("actor loss reaches the message net", G,
+             "q_pi = torch.min(*self.acting_critic.q(body, blocks, pi, msg.detach()))",
+             "q_pi = torch.min(*self.acting_critic.q(body, blocks, pi, msg))", f"{TG} -k test_actor_loss_moves"),
+    Mutation("polyak weights swapped", G, "tp.mul_(self.args.polyak).add_(p, alpha=1 - self.args.polyak)",
+             "tp.mul_(1 - self.args.polyak).add_(p, alpha=self.args.polyak)", f"{TG} -k test_target_critic_is_polyak"),
+    Mutation("normalizer std floor 0.1", G, "np.maximum(self.eps**2, self.sumsq", "np.maximum(self.eps, self.sumsq",
+             f"{TG} -k test_normalizer_clips"),
+    Mutation("normalizer statistics of unclipped observations", G,
+             "x = np.clip(x.reshape(len(x), -1, len(self.sum)), -self.clip, self.clip).astype(np.float64)",
+             "x = x.reshape(len(x), -1, len(self.sum)).astype(np.float64)", f"{TG} -k test_normalizer_clips"),
+    Mutation("HER future may pick the transition's own step", G, "future = t + 1 + (rng.random(batch)",
+             "future = t + (rng.random(batch)", f"{TG} -k test_her_future"),
+    Mutation("HER final is the second-to-last config", G, "future = np.full(batch, seg_len)",
+             "future = np.full(batch, seg_len - 1)", f"{TG} -k test_her_final"),
+    Mutation("HER reward from the achieved config before the step", G, "reward=fetch5_env.goal_reached(ag_next, g)",
+             "reward=fetch5_env.goal_reached(self.ag[w, ep, t], g)", f"{TG} -k test_her_final"),
+    Mutation("messages summed over edges", G, "MSG).amax(dim=2)", "MSG).sum(dim=2)",
+             f"{TG} -k test_a_blocks_message_is_the_max"),
+    Mutation("edge input reads close for above", G, "above = np.arange(len(src)) + len(og.close_pairs(n_blocks))",
+             "above = np.arange(len(src))", f"{TG} -k test_a_blocks_message_is_the_max"),
+    # --- the semantic graph and its paths (SPEC §6) ----------------------------------------------------
+    Mutation("SR EMA moves away from the outcome", G, "(float(success) - self.sr[c])", "(self.sr[c] - float(success))",
+             f"{TG} -k 'test_edges_are_created or test_sr_ema'"),
+    Mutation("edges for steps that are not small", G, "if start != final and is_small_step(start, final, self.n):",
+             "if start != final:", f"{TG} -k test_edges_are_created"),
+    Mutation("no SR sharing between permuted edges", G, "key = int(((ps << self.dim) | pf).min())",
+             "key = int((ps[0] << self.dim) | pf[0])", f"{TG} -k test_edges_are_created"),
+    Mutation("Dijkstra sums 1 - SR", G, "cost = (-np.log(np.clip(graph.sr, 1e-12, 1.0))).tolist()",
+             "cost = (1 - np.clip(graph.sr, 1e-12, 1.0)).tolist()", f"{TG} -k test_safest_path_is_the_most_reliable"),
+    Mutation("safest path: predecessors drawn uniformly, not by path counts", G, "r -= count[u]",
+             "r -= count[path[-1]] / len(options)", f"{TG} -k test_equally_safe_paths"),
+    Mutation("Yen pops the longest candidate", G, "heapq.heappush(candidates, (len(root) + len(spur),",
+             "heapq.heappush(candidates, (-len(root) - len(spur),", f"{TG} -k test_yen_k_shortest"),
+    Mutation("Yen counts block permutations as shapes", G, "kept.setdefault(_shape(graph, found[-1]), found[-1])",
+             "kept.setdefault(tuple(found[-1]), found[-1])", f"{TG} -k k_different_shapes"),
+    Mutation("a long path keeps its first configs", G, "else [path[0]] + path[-(cap - 1) :]", "else path[:cap]",
+             f"{TG} -k test_plans_without_a_path"),
+    Mutation("shortest paths with probability 1 - shortest_ratio", G,
+             "if explore and rng.random() < graph.args.shortest_ratio:",
+             "if explore and rng.random() < 1 - graph.args.shortest_ratio:", f"{TG} -k test_training_plans_take"),
+    Mutation("autotelic goals never the newest node", G, "return self.masks[rng.integers(self.n_nodes)]",
+             "return self.masks[rng.integers(max(1, self.n_nodes - 1))]", f"{TG} -k test_autotelic_goals_are_uniform"),
+    Mutation("stability read over the first steps (the authors' bug)", G,
+             "stable = (ag[:, T - a.stable_steps :] == ag[:, -1:])",
+             "stable = (ag[:, 1 : 1 + a.stable_steps] == ag[:, -1:])",
+             f"{TG} -k test_a_segment_is_stable"),
+    Mutation("A*: a node reached again at the same depth takes the new predecessor", G,
+             "(u, v) in banned_edges or nd >= dist.get(v, math.inf):",
+             "(u, v) in banned_edges or nd > dist.get(v, math.inf):", f"{TG} -k 'yen or k_shortest'",
+             harmless="the spur path found is another path of the same length: which of equally short paths Yen "
+                      "meets first is free under SPEC §6 (k shortest paths of different shapes, one drawn uniformly)"),
+    # --- HME: the social partner, internalization, rehearsal (SPEC §7) ---------------------------------
+    Mutation("social with probability 1 - sp_ratio", G, "w.rng.random() < args.sp_ratio:",
+             "w.rng.random() > args.sp_ratio:", f"{TH} -k test_cycle_kinds"),
+    Mutation("rehearsal with probability 1 - internalization_prob", G, "w.rng.random() < args.internalization_prob:",
+             "w.rng.random() >= args.internalization_prob:", f"{TH} -k test_cycle_kinds"),
+    Mutation("stepping stones: tried edges instead of untried", G, "return known & ~np.isin(keys, graph.edge_keys())",
+             "return known & np.isin(keys, graph.edge_keys())", f"{TH} -k test_stepping_stones_match"),
+    Mutation("beyond goals include tried neighbours", G, "beyond = tails[~np.isin(keys, graph.edge_keys())]",
+             "beyond = tails", f"{TH} -k test_beyond_goals_are_oracle"),
+    Mutation("frontier: the agent may not move (elsewhere ignored)", G,
+             "stones = stones[stones != current] if elsewhere else stones", "stones = stones",
+             f"{TH} -k test_frontier_goals_are"),
+    Mutation("frontier: the current config not reachable from itself", G, "og.bfs_hops(*self.csr(0)[:2], s) >= 0]",
+             "og.bfs_hops(*self.csr(0)[:2], s) > 0]", f"{TH} -k test_frontier_goals_are"),
+    Mutation("beyond goals do not chain", G, "            start = beyond\n", "            pass\n",
+             f"{TH} -k test_social_cycle_follows"),
+    Mutation("beyond goals from the reset config", G, "yield from self.beyond_goals(w, base)",
+             "yield from self.beyond_goals(w, here)", f"{TH} -k test_social_cycle_follows"),
+    Mutation("frontier reached with the stochastic policy", G,
+             "pursue(self.learner, w, frontier, explore=False, deterministic=True)",
+             "pursue(self.learner, w, frontier, explore=False, deterministic=False)",
+             f"{TH} -k test_social_cycle_follows"),
+    Mutation("rehearsal attempts the beyond goal deterministically", G,
+             "if arrived and w.left > 0:\n                yield Request(beyond, deterministic=False)",
+             "if arrived and w.left > 0:\n                yield Request(beyond, deterministic=True)",
+             f"{TH} -k test_rehearsal_goes_to"),
+    Mutation("rehearsal always draws the first pair", G,
+             "self.internalization_buffer[w.rng.integers(len(self.internalization_buffer))]",
+             "self.internalization_buffer[0 * w.rng.integers(len(self.internalization_buffer))]",
+             f"{TH} -k 'stored_once or merge_into_one_set'"),
+    Mutation("merged pairs: new ones first", G, "return list(dict.fromkeys([*kept, *new]))",
+             "return list(dict.fromkeys([*new, *kept]))", f"{TH} -k merge_into_one_set"),
+    Mutation("internalization buffer keeps duplicates", G, "return list(dict.fromkeys([*kept, *new]))",
+             "return [*kept, *new]", f"{TH} -k 'stored_once or merge_into_one_set'"),
+    # --- LP (SPEC §8) ----------------------------------------------------------------------------------
+    Mutation("LP without abs", LP, "lp[k] = abs(x[len(x) // 2 :].mean() - x[: len(x) // 2].mean())",
+             "lp[k] = x[len(x) // 2 :].mean() - x[: len(x) // 2].mean()", f"{TB} -k 'test_lp_needs_20 or test_lp_is'"),
+    Mutation("LP needs 21 outcomes", LP, "if len(o) >= self.min_outcomes:", "if len(o) > self.min_outcomes:",
+             f"{TB} -k test_lp_needs_20"),
+    Mutation("LP draws empty buckets", LP, "lp = self.progress() * nonempty", "lp = self.progress()",
+             f"{TB} -k test_bucket_probabilities"),
+    Mutation("LP mixes without 1 - uniform_prob", LP, "+ (1 - self.uniform_prob) * lp / lp.sum()", "+ lp / lp.sum()",
+             f"{TB} -k test_bucket_probabilities"),
+    Mutation("LP goal always the bucket's first config", LP, "return int(bucket[w.rng.integers(len(bucket))])",
+             "return int(bucket[0])", f"{TB} -k test_lp_goals_come_from"),
+    Mutation("LP credits every attempt as reached", LP, "w.attempts.append((w.drawn_from, reached))",
+             "w.attempts.append((w.drawn_from, True))", f"{TB} -k test_lp_goals_come_from"),
+    # --- VDS (SPEC §8) ---------------------------------------------------------------------------------
+    Mutation("VDS disagreement as variance", VDS, ".std(dim=0).cpu().numpy()", ".var(dim=0).cpu().numpy()",
+             f"{TB} -k test_disagreement_is_the_std"),
+    Mutation("VDS candidates with replacement", VDS, "w.rng.choice(nodes, args.vds_candidates, False)",
+             "w.rng.choice(nodes, args.vds_candidates, True)", f"{TB} -k test_at_most_1000"),
+    Mutation("VDS multiplies by the temperature", VDS, "(score - score.max()) / args.vds_temperature",
+             "(score - score.max()) * args.vds_temperature", f"{TB} -k test_goals_are_drawn_in_proportion"),
+    # --- checkpoints and resume (SPEC §10) -------------------------------------------------------------
+    Mutation("resume: workers' random streams not restored", P,
+             "w.rng.bit_generator.state = json.loads(rng)", "w.rng.bit_generator.state = w.rng.bit_generator.state",
+             f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("resume: envs' random streams not restored", P,
+             "w.env.np_random.bit_generator.state = json.loads(env_rng)", "pass",
+             f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("resume: update counter restarts", P, 'agent.n_updates = c["n_updates"]',
+             "agent.n_updates = 0", f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("resume: replay pointer restarts", P, 'b.size, b.ptr = n, s["buffer"]["ptr"]',
+             "b.size, b.ptr = n, 0", f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("checkpoint: normalizer sumsq saved as sum", P,
+             "sumsq=torch.tensor(agent.normalizer.sumsq)", "sumsq=torch.tensor(agent.normalizer.sum)",
+             f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("checkpoint without the critic's optimizer", P,
+             '"actor_opt", "critic_opt")  # SAC\'s, as saved', '"actor_opt")  # SAC\'s, as saved',
+             f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("resume: rows not restored", P, 'run.rows = s["rows"]', "run.rows = []",
+             f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("resume: internalized pairs not restored", G,
+             'self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])',
+             "self.internalization_buffer = []", f"{TG} -k test_a_run_restored_from_a_checkpoint"),
+    Mutation("checkpoint of an older environment accepted", P,
+             "if version != ENV_VERSION:", "if version > ENV_VERSION:", f"{TG} -k 'saying_what_it_is and environment'"),
+    Mutation("checkpoints loaded with weights_only=False", P,
+             "torch.load(path, weights_only=True, map_location", "torch.load(path, weights_only=False, map_location",
+             "tests/test_paper_agent.py -k 'foreign_object and touch'"),
+    Mutation("--resume ignores flags that contradict the checkpoint", P,
+             "    if bad:\n", "    if bad and args.eval_only:\n", f"{TG} -k 'contradict and resume'"),
+    # --- a worker's streams and outcomes (issue 26's defects), the progress line (issue 24) -----------
+    Mutation("a worker and its env seeded with the same number: one stream read twice", G,
+             ("self.rng = np.random.default_rng(mine)", "self.env.reset(seed=int(env.generate_state(1)[0]))"),
+             ("self.rng = np.random.default_rng(words[0])", "self.env.reset(seed=words[0])"),
+             "tests/test_worker.py -k independent_streams"),
+    Mutation("--eval-only reseeds every worker alike", P, "        w.seed(args.seed + w.index)\n",
+             "        w.seed(args.seed)\n", "tests/test_worker.py -k eval_only"),
+    Mutation("an attempt cut off by the budget counts as a failure", G,
+             "        if w.left <= 0:\n            return None", "        if w.left <= 0:\n            return False",
+             "tests/test_worker.py -k cut_off"),
+    Mutation("time left in the epoch without its evaluation", P,
+             "epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval",
+             "epoch_left = per_cycle * (a.n_cycles - run.cycle)", "tests/test_plumbing.py -k progress"),
+]
+# fmt: on
+
+
+# ------------------------------------------------------------------------------------------------
+# Running them
+# ------------------------------------------------------------------------------------------------
+def project_files() -> list[str]:
+    """The files git knows of: tracked, and untracked but not ignored (a new test not yet committed)."""
+    out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                         capture_output=True, text=True, check=True)  # fmt: skip
+    return [f for f in out.stdout.split("\0") if f and (ROOT / f).is_file()]
+
+
+def mutated(m: Mutation) -> str:
+    """The mutated text of m.file; exits with the reason if an old text does not occur exactly once."""
+    text = (ROOT / m.file).read_text()
+    for old, new in m.edits():
+        if text.count(old) != 1:
+            sys.exit(
+                f"mutation {m.name!r}: {old!r} occurs {text.count(old)} times in {m.file}, not once: update the list"
+            )
+        text = text.replace(old, new)
+    return text
+
+
+def copy_project(files: list[str], dest: Path):
+    for f in files:
+        (dest / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / f, dest / f)
+
+
+def pytest_run(folder: Path, guard: str, timeout: float) -> tuple[int | None, str]:
+    """(pytest's exit code or None on timeout, its output's tail) for the guard's tests in folder."""
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *shlex.split(guard)]
+    env = os.environ | {"PYTHONDONTWRITEBYTECODE": "1"}
+    try:
+        out = subprocess.run(cmd, cwd=folder, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return None, ""
+    return out.returncode, (out.stdout + out.stderr)[-1500:]
+
+
+def check(m: Mutation | None, guard: str, files: list[str], timeout: float) -> tuple[str, float, str]:
+    """Apply m (None: nothing) to a fresh copy and run guard: (verdict, seconds, output tail)."""
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="mutation-") as tmp:
+        copy_project(files, Path(tmp))
+        if m is not None:
+            (Path(tmp) / m.file).write_text(mutated(m))
+        code, tail = pytest_run(Path(tmp), guard, timeout)
+    verdict = {None: "killed", 0: "survived", 1: "killed", 2: "killed"}.get(code, f"error {code}")
+    if code is None:
+        verdict = "killed (timeout)"
+    return verdict, time.perf_counter() - t, tail
+
+
+def baseline_guards(mutations: list[Mutation]) -> list[str]:
+    """The guards merged per set of test files (one pytest run each): -k expressions joined with 'or'."""
+    groups: dict[tuple[str, ...], list[str | None]] = {}
+    for m in mutations:
+        args = shlex.split(m.guard)
+        files, expr = (args[: args.index("-k")], args[args.index("-k") + 1]) if "-k" in args else (args, None)
+        groups.setdefault(tuple(files), []).append(expr)
+    merged = []
+    for files, exprs in groups.items():
+        k = "" if None in exprs else " -k " + shlex.quote(" or ".join(f"({e})" for e in dict.fromkeys(exprs)))
+        merged.append(" ".join(files) + k)
+    return merged
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("-k", dest="select", default="", help="only the mutations whose name contains this text")
+    parser.add_argument("--list", action="store_true", help="list the mutations and their guards, run nothing")
+    parser.add_argument("--jobs", type=int, default=1, help="mutations checked at once (each runs pytest)")
+    parser.add_argument("--timeout", type=float, default=600, help="seconds a guard may run (then: killed)")
+    parser.add_argument("--no-baseline", action="store_true", help="skip running the guards on the unmutated code")
+    args = parser.parse_args()
+    chosen = [m for m in MUTATIONS if args.select.lower() in m.name.lower()]
+    for m in chosen:
+        mutated(m)  # every old text occurs once, before anything runs
+    if args.list:
+        for m in chosen:
+            print(f"{m.name}\n    {m.file}; guard: {m.guard}" + (f"\n    harmless: {m.harmless}" if m.harmless else ""))
+        print(f"{len(chosen)} mutations")
+        return 0
+    files, start = project_files(), time.perf_counter()
+    pool = concurrent.futures.ThreadPoolExecutor(max(1, args.jobs))
+    if not args.no_baseline:
+        guards = baseline_guards(chosen)
+        print(f"the guards on the unmutated code ({len(guards)} pytest runs) ...", flush=True)
+        for guard, (verdict, _, tail) in zip(guards, pool.map(lambda g: check(None, g, files, args.timeout), guards),
+                                             strict=True):  # fmt: skip
+            if verdict != "survived":
+                print(f"error: a guard fails on the unmutated code: pytest {guard}\n{tail}", file=sys.stderr)
+                return 2
+    print(f"{len(chosen)} mutations:", flush=True)
+    counts = dict(killed=0, survived=0, harmless=0, error=0)
+    futures = {pool.submit(check, m, m.guard, files, args.timeout): m for m in chosen}
+    for future in concurrent.futures.as_completed(futures):
+        m, (verdict, seconds, tail) = futures[future], future.result()
+        kind = verdict.split()[0]
+        if kind == "survived" and m.harmless:
+            kind, verdict = "harmless", f"survived, harmless: {m.harmless}"
+        counts[kind] += 1
+        print(f"  {'KILLED' if kind == 'killed' else kind.upper():9s} {m.name}  ({m.file}; {seconds:.0f} s)"
+              + (f"\n            {verdict}" if kind == "harmless" else "")
+              + (f"\n{tail}" if kind == "error" else ""), flush=True)  # fmt: skip
+    minutes = (time.perf_counter() - start) / 60
+    print(f"{counts['killed']} killed, {counts['survived']} survived, {counts['harmless']} harmless survivors, "
+          f"{counts['error']} errors, of {len(chosen)}; {minutes:.1f} min")  # fmt: skip
+    return 0 if counts["survived"] == counts["error"] == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
