@@ -651,6 +651,9 @@ def test_a_run_restored_from_a_checkpoint_runs_the_next_cycle_as_the_original_do
     for _ in range(2):
         gh.one_cycle(run)
     run.rows = [{"epoch": 0, "global_sr": 0.25}]  # an earlier epoch's row
+    # Stored pairs, whatever the cycles drew (the next cycle may rehearse them):
+    stored = [tuple(int(m) for m in og.OracleGraph(3).masks[i : i + 2]) for i in (0, 2)]
+    run.sampler.internalization_buffer = gh.merge_pairs(run.sampler.internalization_buffer, stored)
     plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "checkpoint.pt")
     torch.manual_seed(1)  # other networks, and fresh streams, replay, graph: all must come from the file
     restored = gh.Run(args, torch.device("cpu"))
