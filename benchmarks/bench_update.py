@@ -41,12 +41,15 @@ N_BLOCKS, BATCH = 5, 256
 
 
 def load(code: str, folder: Path):
-    """The training script at `code`: 'now' (this checkout's gangstr_hme.py) or 'before' (BEFORE's, from git,
+    """The training script at `code`: 'now' (this checkout's gangstr_hme.py; 'now-default-heap': without
+    keep_freed_memory, to show what it buys) or 'before' (BEFORE's, from git,
     written to `folder` and imported under another name; it imports this checkout's env and oracle, whose
     assets sit beside them). BEFORE had no plumbing.py: its script holds all it runs."""
-    if code == "now":
+    if code.startswith("now"):
         import gangstr_hme  # noqa: PLC0415
 
+        if code == "now-default-heap":
+            gangstr_hme.keep_freed_memory = lambda: None
         return gangstr_hme
     path = folder / f"gangstr_{BEFORE}.py"
     if not path.exists():
@@ -197,6 +200,32 @@ def floors(shapes, times: dict) -> dict:
     return dict(fp32=sum(fp32), bf16=sum(bf16))
 
 
+def profile(mod, data: dict, precision: str, updates: int = 20):
+    """Where one update's time goes (torch.profiler, 1 thread): the self time of its ops, by kind."""
+    from torch.profiler import ProfilerActivity, profile  # noqa: PLC0415
+
+    torch.set_num_threads(1)
+    agent = agent_from(mod, data, precision)
+    for b in data["batches"][:3]:
+        agent.update(b)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for i in range(updates):
+            agent.update(data["batches"][i % len(data["batches"])])
+    kinds = {"products": ("mkldnn::_linear_pointwise", "aten::mm", "aten::addmm", "aten::bmm"),
+             "ReLU (forward and backward)": ("aten::threshold_backward", "aten::clamp_min", "aten::relu"),
+             "copies and casts": ("aten::copy_", "aten::_to_copy", "aten::clone"),
+             "sums (bias gradients, over nodes)": ("aten::sum",), "max over edges": ("aten::amax", "aten::eq"),
+             "gather of edge inputs, concatenations": ("aten::index", "aten::cat")}  # fmt: skip
+    split = dict.fromkeys([*kinds, "the rest (Adam, small ops, Python)"], 0.0)
+    for e in prof.key_averages():
+        kind = next((k for k, names in kinds.items() if e.key in names), "the rest (Adam, small ops, Python)")
+        split[kind] += e.self_cpu_time_total / updates / 1e3
+    total = sum(split.values())
+    print(f"\nWhere a {precision} update's time goes (1 thread, profiled: {total:.1f} ms per update)")
+    for k, ms in split.items():
+        print(f"  {k:<38} {ms:5.1f} ms  {ms / total:4.0%}")
+
+
 # --- 4(a): what bf16 does to the networks --------------------------------------------------------------
 def drift(mod, before, n_updates: int, n_segments: int = 100, n_held_out: int = 20):
     """From the same start (a replay of n_segments real segments, fresh networks) and the same batches,
@@ -277,7 +306,7 @@ def main():
     parser.add_argument("--drift", action="store_true", help="only 4(a): what bf16 does to the networks")
     parser.add_argument("--drift-updates", type=int, default=1000)
     parser.add_argument("--worker", choices=["updates", "cycles"], help=argparse.SUPPRESS)
-    parser.add_argument("--code", choices=["now", "before"], help=argparse.SUPPRESS)
+    parser.add_argument("--code", choices=["now", "now-default-heap", "before"], help=argparse.SUPPRESS)
     parser.add_argument("--precision", default="fp32", help=argparse.SUPPRESS)
     parser.add_argument("--folder", help=argparse.SUPPRESS)
     ns = parser.parse_args()
@@ -305,7 +334,7 @@ def main():
             print(f"  {'x'.join(map(str, s)):<18} {shapes.count(s):>5}" + "".join(f" {r:15.0f}" for r in rates))
         floor = {t: floors(shapes, times[t]) for t in (1, 2)}
 
-        conditions = [("before", "fp32"), ("now", "fp32"), ("now", "bf16")]
+        conditions = [("before", "fp32"), ("now-default-heap", "fp32"), ("now", "fp32"), ("now", "bf16")]
         got = {c: [] for c in conditions}
         for r in range(ns.rounds):
             for c in conditions if r % 2 == 0 else conditions[::-1]:
@@ -319,12 +348,15 @@ def main():
                 ms = med[c][f"update_{t}"]
                 spread = [x[f"update_{t}"] for x in got[c]]
                 fl = floor[t][c[1]]
-                print(f"  {t} thread(s) {c[0]:>6} {c[1]}: {ms:6.1f} ms ({min(spread):.1f}-{max(spread):.1f})  "
+                print(f"  {t} thread(s) {c[0]:>16} {c[1]}: {ms:6.1f} ms ({min(spread):.1f}-{max(spread):.1f})  "
                       f"{BEFORE}/this {base / ms:4.2f}x   floor {fl:5.1f} ms, {ms / fl:4.2f}x it")  # fmt: skip
+        for precision in ("fp32", "bf16"):
+            profile(now, torch.load(folder / "data.pt", weights_only=False), precision)
         print("Single-observation action, 1 thread, ms: " + ", ".join(
             f"{c[0]} {c[1]} {med[c]['act']:.3f}" for c in conditions))  # fmt: skip
 
         if not ns.skip_cycles:
+            conditions = [("before", "fp32"), ("now", "fp32"), ("now", "bf16")]
             cycles = {c: [] for c in conditions}
             for r in range(ns.rounds):
                 for c in conditions if r % 2 == 0 else conditions[::-1]:
