@@ -445,8 +445,9 @@ class SAC:
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
+        # fused: Adam's step as one pass per tensor; on CPU torch's default is a dozen small ops per tensor (4x slower)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor, fused=True)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic, fused=True)
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
