@@ -212,9 +212,10 @@ class OneDNNLinear(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         x2, w, y = ctx.saved_tensors
-        g = grad.reshape(-1, len(w)).to(w.dtype)  # (rows, out)
-        if y is not None:
-            g = torch.ops.aten.threshold_backward(g, y, 0)  # the ReLU's: zero where it output zero
+        g = grad.to(w.dtype)
+        if y is not None:  # the ReLU's: zero where it output zero (on the gradient as it comes, often expanded)
+            g = torch.ops.aten.threshold_backward(g, y.view(g.shape), 0)
+        g = g.reshape(-1, len(w))  # (rows, out)
         grad_x = grad_w = grad_b = None
         if ctx.needs_input_grad[0]:
             grad_x = onednn_product(g, w.t()).view(ctx.x_shape).to(ctx.x_dtype)
