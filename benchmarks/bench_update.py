@@ -137,7 +137,7 @@ def condition_cycles(mod, precision: str, cycles: int) -> dict:
     seconds = time.perf_counter() - t
     steps = cycles * run.args.n_segments * run.args.segment_len
     return dict(steps_per_s=steps / seconds, collect_s=(run.tally["collect"] - collect) / cycles,
-                update_s=(run.tally["update"] - update) / cycles)  # fmt: skip
+                update_s=(run.tally["update"] - update) / cycles, threads=torch.get_num_threads())  # fmt: skip
 
 
 def worker(ns):
@@ -362,7 +362,8 @@ def main():
                 for c in conditions if r % 2 == 0 else conditions[::-1]:
                     cycles[c].append(run_condition(folder, "cycles", *c, ns))
                 print(f"  round {r + 1}/{ns.rounds} of the training cycles done", flush=True)
-            print(f"\nTraining cycle, 1 worker, 5 blocks, {torch.get_num_threads()} threads (medians of {ns.rounds} "
+            threads = cycles["now", "fp32"][0]["threads"]
+            print(f"\nTraining cycle, 1 worker, 5 blocks, {threads} threads (medians of {ns.rounds} "
                   f"rounds x {ns.cycles} cycles)")  # fmt: skip
             base = statistics.median(x["steps_per_s"] for x in cycles["before", "fp32"])
             for c in conditions:
