@@ -19,7 +19,9 @@ from __future__ import annotations
 import collections
 import collections.abc
 import concurrent.futures
+import contextlib
 import copy
+import ctypes
 import functools
 import heapq
 import math
@@ -124,6 +126,8 @@ class Args:
     """train on the GPU if one is available"""
     compile: bool = False
     """compile the SAC losses with torch.compile (start-up: a minute or more; see README)"""
+    precision: str = "fp32"
+    """the SAC update's large products: 'fp32', or 'bf16' (bf16 products, fp32 weights, losses and targets; README)"""
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
     init_from: str = ""
@@ -146,15 +150,86 @@ ACTOR_NODE_OUT, CRITIC_NODE_OUT = 147, 159  # the node nets' output widths, the 
 class MLP(nn.Module):
     """Linear -> ReLU -> Linear (-> ReLU), the shape of every net in SPEC §5. One module with a
     functional forward rather than an nn.Sequential of four: acting runs these nets on one observation,
-    where each extra module call costs about as much as the small matmul it wraps."""
+    where each extra module call costs about as much as the small matmul it wraps. `large`: a net run on
+    every edge or node (message and node nets), whose products --precision bf16 computes in bf16."""
 
-    def __init__(self, n_in: int, n_hidden: int, n_out: int, out_relu: bool = True):
+    def __init__(self, n_in: int, n_hidden: int, n_out: int, out_relu: bool = True, large: bool = False):
         super().__init__()
         self.hidden, self.out, self.out_relu = nn.Linear(n_in, n_hidden), nn.Linear(n_hidden, n_out), out_relu
+        self.large = large
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = F.linear(F.relu(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
-        return F.relu(x) if self.out_relu else x
+        if update_products.dtype is None:  # acting (and a plain reference): torch's own products
+            x = F.linear(F.relu(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
+            return F.relu(x) if self.out_relu else x
+        dtype = update_products.dtype if self.large else torch.float32
+        return dense(dense(x, self.hidden, True, dtype), self.out, self.out_relu, dtype)
+
+
+# --- the update's products: one switch (a speed trick; README "Speed", benchmarks/bench_update.py) ---
+@contextlib.contextmanager
+def update_products(dtype: torch.dtype):
+    """Within it, the networks compute as in a SAC update: every product by `dense`, the large nets' in
+    `dtype` (--precision). Outside it (acting), torch's F.linear: on one observation it is 2x faster."""
+    update_products.dtype = dtype
+    try:
+        yield
+    finally:
+        update_products.dtype = None
+
+
+update_products.dtype = None
+
+
+def dense(x: torch.Tensor, layer: nn.Linear, relu: bool, dtype: torch.dtype) -> torch.Tensor:
+    """relu(x W^T + b) (or without the ReLU) for x (..., in), its products in `dtype` with fp32 sums;
+    the output in `dtype`. On CPU, oneDNN (OneDNNLinear); elsewhere, or compiled (--compile), torch's."""
+    if x.device.type == "cpu" and ONEDNN and not torch.compiler.is_compiling():
+        return OneDNNLinear.apply(x, layer.weight, layer.bias, relu, dtype)
+    y = F.linear(x.to(dtype), layer.weight.to(dtype), layer.bias.to(dtype))
+    return F.relu(y) if relu else y
+
+
+ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+class OneDNNLinear(torch.autograd.Function):
+    """A layer's three products (its output, the input's and the weight's gradients) by oneDNN, the ReLU
+    fused into the first. torch's own CPU products go to MKL, which on this project's AMD machine runs fp32
+    at under half oneDNN's rate; and a separate ReLU is one more pass over the largest tensors."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, relu: bool, dtype):
+        x2 = x.reshape(-1, x.shape[-1]).to(dtype).contiguous()  # (rows, in)
+        w = weight.to(dtype)
+        y = onednn_product(x2, w, bias.to(dtype), relu)
+        ctx.save_for_backward(x2, w, y if relu else None)
+        ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
+        return y.view(*x.shape[:-1], len(w))
+
+    @staticmethod
+    def backward(ctx, grad):
+        x2, w, y = ctx.saved_tensors
+        g = grad.to(w.dtype)
+        if y is not None:  # the ReLU's: zero where it output zero (on the gradient as it comes, often expanded)
+            g = torch.ops.aten.threshold_backward(g, y.view(g.shape), 0)
+        g = g.reshape(-1, len(w))  # (rows, out)
+        grad_x = grad_w = grad_b = None
+        if ctx.needs_input_grad[0]:
+            grad_x = onednn_product(g, w.t()).view(ctx.x_shape).to(ctx.x_dtype)
+        if ctx.needs_input_grad[1]:  # g^T x; oneDNN copies a transposed first operand: the narrower goes first
+            narrow_g = g.shape[1] <= x2.shape[1]
+            grad_w = onednn_product(g.t(), x2.t()) if narrow_g else onednn_product(x2.t(), g.t()).t()
+            grad_w = grad_w.float().contiguous()
+        if ctx.needs_input_grad[2]:
+            grad_b = g.sum(0, dtype=torch.float32)
+        return grad_x, grad_w, grad_b, None, None
+
+
+def onednn_product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
+    """x (rows, in) times w (out, in) transposed, + bias, then the ReLU if asked: oneDNN's linear, whose
+    ReLU runs on the product's output while it is still in cache."""
+    return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
 
 
 def weight_view(module: nn.Module) -> nn.Module:
@@ -215,8 +290,9 @@ class Critic(nn.Module):
 
     def __init__(self, n_blocks: int):
         super().__init__()
-        self.message = MLP(8, 256, MSG)  # edge input: [g - ag at close{i,j}, at i on j, pos i, pos j]
-        self.q_nodes = nn.ModuleList([MLP(4 + BODY + PER_BLOCK + MSG, 256, CRITIC_NODE_OUT) for _ in range(2)])
+        self.message = MLP(8, 256, MSG, large=True)  # edge input: [g - ag at close{i,j}, at i on j, pos i, pos j]
+        node_in = 4 + BODY + PER_BLOCK + MSG
+        self.q_nodes = nn.ModuleList([MLP(node_in, 256, CRITIC_NODE_OUT, large=True) for _ in range(2)])
         self.q_heads = nn.ModuleList([MLP(CRITIC_NODE_OUT, 256, 1, out_relu=False) for _ in range(2)])
         init_weights(self)
 
@@ -230,15 +306,16 @@ class Critic(nn.Module):
 
     def q(self, body, blocks, action, msg):
         """Twin Q values; node input [action, body, block i, message i] (built once for both twins),
-        summed over nodes."""
+        summed over nodes (in fp32, whatever the node nets' precision: the heads and Q values stay fp32)."""
         x = node_inputs([action, body], [blocks, msg])
-        return [head(node(x).sum(1)).squeeze(-1) for node, head in zip(self.q_nodes, self.q_heads, strict=True)]
+        heads = zip(self.q_nodes, self.q_heads, strict=True)
+        return [head(node(x).sum(1, dtype=torch.float32)).squeeze(-1) for node, head in heads]
 
 
 class Actor(nn.Module):
     def __init__(self, n_blocks: int):
         super().__init__()
-        self.node = MLP(BODY + PER_BLOCK + MSG, 256, ACTOR_NODE_OUT)
+        self.node = MLP(BODY + PER_BLOCK + MSG, 256, ACTOR_NODE_OUT, large=True)
         # SPEC §5's head Linear(147, 256) -> ReLU, then its mean and log-std layers, Linear(256, 4) each,
         # stacked in one Linear(256, 8): one matmul for both, cheaper acting.
         self.head = MLP(ACTOR_NODE_OUT, 256, 8, out_relu=False)
@@ -247,8 +324,10 @@ class Actor(nn.Module):
         nn.init.xavier_uniform_(self.head.out.weight.data[4:])
 
     def forward(self, body, blocks, msg):
-        """Node input [body, block i, message i], summed over nodes, then the Gaussian head."""
-        mean, log_std = self.head(self.node(node_inputs([body], [blocks, msg])).sum(1)).chunk(2, dim=-1)
+        """Node input [body, block i, message i], summed over nodes (in fp32, as the critic's), then the
+        Gaussian head."""
+        nodes = self.node(node_inputs([body], [blocks, msg])).sum(1, dtype=torch.float32)
+        mean, log_std = self.head(nodes).chunk(2, dim=-1)
         return mean, log_std.clamp(-20, 2)
 
     def sample(self, body, blocks, msg, noise):
@@ -367,12 +446,16 @@ class SAC:
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
+        # fused: Adam's step as one pass per tensor; on CPU torch's default is a dozen small ops per tensor (4x slower)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor, fused=True)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic, fused=True)
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
         self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
+        self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
+        if device.type == "cpu":
+            keep_freed_memory()
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
@@ -413,7 +496,8 @@ class SAC:
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
-        critic_loss, actor_loss, target, stats = self.compute_losses(batch)
+        with update_products(self.products):  # --precision: the one switch (see update_products)
+            critic_loss, actor_loss, target, stats = self.compute_losses(batch)
         self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
         self.actor_opt.zero_grad()
         self.critic_opt.zero_grad()
@@ -438,6 +522,16 @@ class SAC:
         out["obs"] = torch.as_tensor(self.normalizer(b["obs"]), device=self.device)
         out["obs_next"] = torch.as_tensor(self.normalizer(b["obs_next"]), device=self.device)
         return out
+
+
+def keep_freed_memory():
+    """Keep the update's freed tensors in this process's heap for the next update (a speed trick, README
+    "Speed"). By default glibc returns a freed block of a few MB to the system and faults its pages back in,
+    zeroed, on the next allocation: about 1,500 page faults and a tenth of a CPU update's time."""
+    libc = ctypes.CDLL(None) if os.name == "posix" else None
+    if hasattr(libc, "mallopt"):  # glibc: blocks up to 32 MB from the heap, which keeps up to 1 GB free
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 1 << 30)  # M_TRIM_THRESHOLD
 
 
 # ------------------------------------------------------------------------------------------------

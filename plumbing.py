@@ -150,10 +150,25 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
     if a.cuda and not torch.cuda.is_available():
         return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
+    if a.precision not in ("fp32", "bf16"):
+        return f"--precision must be 'fp32' or 'bf16', got {a.precision!r}"
+    if a.precision == "bf16" and not fast_bf16(a.cuda):
+        device = "GPU" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
+        return f"--precision bf16: this {device} has no bf16 matrix instructions, where bf16 is no faster; use fp32"
     return check_run_control(a) or check_sampler_args(a)
 
 
 MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
+
+
+def fast_bf16(cuda: bool) -> bool:
+    """Whether --precision bf16 can pay here: the GPU supports bf16, or the CPU has bf16 matrix instructions
+    (x86: AMX or AVX512-BF16; ARM: BF16) for oneDNN; without them, bf16 products are emulated."""
+    if cuda:
+        return torch.cuda.is_bf16_supported()
+    caps = torch.cpu.get_capabilities()
+    has_bf16 = any(caps.get(name) for name in ("amx_bf16", "avx512_bf16", "bf16", "sve_bf16"))
+    return torch.backends.mkldnn.is_available() and has_bf16
 
 
 def check_run_control(a) -> str | None:
@@ -409,7 +424,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
     sys.exit(2)
 
 
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "save_buffer", "resume")  # what --resume may change
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "save_buffer", "resume")  # --resume may change
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
                 "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs", "resume")  # fmt: skip
 

@@ -1,7 +1,8 @@
 """Learner speed (issue: gangstr_hme part 1), medians over repeats, CPU:
 
-- one SAC update of the GNN actor-critic (batch 256) and, as a yardstick in the same run, one SAC update
-  of plain MLPs (two hidden layers of 256) on the flat [obs, ag, g] input;
+- one SAC update of the GNN actor-critic (batch 256), also with --precision bf16 where the CPU has bf16
+  instructions, and, as a yardstick in the same run, one SAC update of plain MLPs (two hidden layers of 256)
+  on the flat [obs, ag, g] input (benchmarks/bench_update.py compares the update with the machine's limit);
 - one single-observation action (the per-step cost of acting);
 - the safest path and the k = 5 shortest paths on a synthetic semantic graph of 13,000 nodes and
   about 300,000 edges (each node linked to 23 nodes among its 2,000 neighbours by id, so that paths
@@ -24,6 +25,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import gangstr_hme as gh  # noqa: E402
+import plumbing  # noqa: E402
 
 
 def median_ms(fn, repeats, warmup=3):
@@ -114,6 +116,13 @@ def main():
     rng = np.random.default_rng(0)
     batch = learner.buffer.sample(256, [rng], 0.8, "final")
     gnn_ms = median_ms(lambda: learner.agent.update(batch), args.repeats)
+    bf16_ms = None
+    if plumbing.fast_bf16(cuda=False):
+        bf16 = gh.SAC(gh.Args(n_blocks=n, precision="bf16"), learner.agent.normalizer.sum.shape[0], torch.device("cpu"))
+        for net in ("actor", "critic", "critic_target"):
+            getattr(bf16, net).load_state_dict(getattr(learner.agent, net).state_dict())
+        bf16.normalizer = learner.agent.normalizer
+        bf16_ms = median_ms(lambda: bf16.update(batch), args.repeats)
 
     t = learner.agent.to_tensors(batch)
     flat = torch.cat([t["obs"], t["ag"], t["g"]], 1)
@@ -142,6 +151,8 @@ def main():
 
     print(f"{n} blocks, {torch.get_num_threads()} torch threads, medians")
     print(f"  SAC update, GNN (batch 256)      {gnn_ms:7.1f} ms")
+    if bf16_ms is not None:
+        print(f"  ... with --precision bf16        {bf16_ms:7.1f} ms")
     print(f"  SAC update, 256x256 MLP          {mlp_ms:7.1f} ms   (GNN / MLP = {gnn_ms / mlp_ms:.2f}x)")
     print(f"  single-observation action        {act_ms:7.3f} ms   (medians of 5 x 1,000 calls: "
           f"{min(act_blocks):.3f}-{max(act_blocks):.3f})")  # fmt: skip

@@ -1,0 +1,157 @@
+"""The SAC update's speed tricks (README "Speed"): the fast fp32 update computes SPEC §5's losses, TD targets
+and gradients to float tolerance, checked against a plain re-implementation written here; --precision bf16
+keeps weights, optimizer state, targets and losses in fp32, and is refused where the device has no fast bf16."""
+
+import numpy as np
+import pytest
+import torch
+
+import gangstr_hme as gh
+import oracle_graph as og
+import plumbing
+
+N_BLOCKS, BATCH = 5, 128
+
+
+def spec_losses(actor: dict, critic: dict, target: dict, t: dict, gamma: float, alpha: float):
+    """SPEC §5 written out plainly, from the networks' parameters by name (`actor`, `critic`, `target`:
+    name -> tensor) and a batch of normalized tensors `t`: the critic loss, the actor loss and the TD target.
+    Loops over nodes and edges; no code of the training script."""
+    n = N_BLOCKS
+    close = {tuple(pair): k for k, pair in enumerate(og.close_pairs(n).tolist())}
+    above = {tuple(pair): len(close) + k for k, pair in enumerate(og.above_pairs(n).tolist())}
+
+    def mlp(p, name, x, out_relu=True):  # Linear -> ReLU -> Linear (-> ReLU)
+        h = torch.relu(x @ p[f"{name}.hidden.weight"].T + p[f"{name}.hidden.bias"])
+        y = h @ p[f"{name}.out.weight"].T + p[f"{name}.out.bias"]
+        return torch.relu(y) if out_relu else y
+
+    def block(obs, i):  # block i's 15 features; its position is the first 3
+        return obs[:, 10 + 15 * i : 25 + 15 * i]
+
+    def messages(p, obs, gap):  # node i: max over the edges (i, j) of the message net on the edge input
+        out = []
+        for i in range(n):
+            edges = [torch.cat([gap[:, [close[min(i, j), max(i, j)]]], gap[:, [above[i, j]]],
+                                block(obs, i)[:, :3], block(obs, j)[:, :3]], dim=1)
+                     for j in range(n) if j != i]  # fmt: skip
+            out.append(torch.stack([mlp(p, "message", e) for e in edges]).amax(0))
+        return out
+
+    def policy(obs, msg, noise):  # squashed Gaussian sample and its log-probability
+        nodes = sum(mlp(actor, "node", torch.cat([obs[:, :10], block(obs, i), msg[i]], 1)) for i in range(n))
+        mean, log_std = mlp(actor, "head", nodes, out_relu=False).chunk(2, dim=1)
+        log_std = log_std.clamp(-20, 2)
+        a = torch.tanh(mean + log_std.exp() * noise)
+        normal = -0.5 * noise**2 - log_std - 0.5 * np.log(2 * np.pi)
+        return a, (normal - torch.log(1 - a**2 + 1e-6)).sum(1)
+
+    def twin_q(p, obs, action, msg):
+        qs = []
+        for k in range(2):
+            x = [torch.cat([action, obs[:, :10], block(obs, i), msg[i]], 1) for i in range(n)]
+            nodes = sum(mlp(p, f"q_nodes.{k}", xi) for xi in x)
+            qs.append(mlp(p, f"q_heads.{k}", nodes, out_relu=False)[:, 0])
+        return qs
+
+    with torch.no_grad():
+        gap2 = t["g"] - t["ag_next"]
+        a2, logp2 = policy(t["obs_next"], messages(critic, t["obs_next"], gap2), t["noise_next"])
+        q_next = torch.min(*twin_q(target, t["obs_next"], a2, messages(target, t["obs_next"], gap2)))
+        y = t["reward"] + gamma * (q_next - alpha * logp2)  # every transition bootstraps
+    msg = messages(critic, t["obs"], t["g"] - t["ag"])
+    q1, q2 = twin_q(critic, t["obs"], t["action"], msg)
+    critic_loss = ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()
+    pi, logp = policy(t["obs"], [m.detach() for m in msg], t["noise_pi"])
+    fixed = {k: v.detach() for k, v in critic.items()}  # the actor loss moves the actor only
+    q_pi = torch.min(*twin_q(fixed, t["obs"], pi, [m.detach() for m in msg]))
+    actor_loss = (alpha * logp - q_pi).mean()
+    return critic_loss, actor_loss, y
+
+
+def realistic_batch(agent: gh.SAC, seed: int = 0) -> dict:
+    """A batch from a replay of random segments (HER relabelled), the normalizer fitted to them."""
+    rng = np.random.default_rng(seed)
+    dim, obs_dim, n_seg, T = og.config_dim(N_BLOCKS), 10 + 15 * N_BLOCKS, 20, 10
+    buf = gh.ReplayBuffer(1, n_seg, T, obs_dim, dim)
+    obs = rng.normal(size=(1, n_seg, T + 1, obs_dim)).astype(np.float32)
+    ag = rng.choice(np.int8([-1, 1]), size=(1, n_seg, T + 1, dim))
+    buf.store(obs, ag, rng.choice(np.int8([-1, 1]), size=(1, n_seg, dim)), rng.uniform(-1, 1, (1, n_seg, T, 4)))
+    agent.normalizer.update(obs)
+    return buf.sample(BATCH, [rng], 0.8, "final")
+
+
+def update_and_reference(precision: str):
+    """One update of a fresh agent, and SPEC §5's losses, target and gradients from the same weights and
+    batch: (update's critic loss, actor loss, target, gradients by name), the same from spec_losses."""
+    torch.manual_seed(0)
+    args = gh.Args(n_blocks=N_BLOCKS, precision=precision)
+    agent = gh.SAC(args, 10 + 15 * N_BLOCKS, torch.device("cpu"))
+    batch = realistic_batch(agent)
+    t = agent.to_tensors(batch)
+    actor = {k: v.clone().requires_grad_() for k, v in agent.actor.state_dict().items()}
+    critic = {k: v.clone().requires_grad_() for k, v in agent.critic.state_dict().items()}
+    target = {k: v.clone() for k, v in agent.critic_target.state_dict().items()}
+    info = agent.update(batch)
+    grads = {f"actor.{k}": p.grad for k, p in agent.actor.named_parameters()}
+    grads |= {f"critic.{k}": p.grad for k, p in agent.critic.named_parameters()}
+    critic_loss, actor_loss, y = spec_losses(actor, critic, target, t, args.gamma, args.alpha)
+    ref_grads = {}
+    for prefix, loss, params in (("critic", critic_loss, critic), ("actor", actor_loss, actor)):
+        ref_grads |= {
+            f"{prefix}.{k}": g for k, g in zip(params, torch.autograd.grad(loss, list(params.values())), strict=True)
+        }
+    got = (info["critic_loss"], info["actor_loss"], agent.last_target, grads)
+    return got, (critic_loss.item(), actor_loss.item(), y, ref_grads), agent
+
+
+def relative(a: torch.Tensor, b: torch.Tensor) -> float:
+    """|a - b| / |b| (norms): how far a tensor is from its reference, as a share of its size."""
+    return float((a.double() - b.double()).norm() / b.double().norm())
+
+
+def test_the_fast_fp32_update_computes_the_spec_losses_targets_and_gradients_to_float_tolerance():
+    (critic_loss, actor_loss, y, grads), (ref_critic, ref_actor, ref_y, ref_grads), _ = update_and_reference("fp32")
+    assert critic_loss == pytest.approx(ref_critic, rel=1e-5)
+    assert actor_loss == pytest.approx(ref_actor, rel=1e-5)
+    assert relative(y, ref_y) < 1e-5
+    assert grads.keys() == ref_grads.keys()
+    worst = max(ref_grads, key=lambda k: relative(grads[k], ref_grads[k]))
+    assert relative(grads[worst], ref_grads[worst]) < 1e-5, worst
+
+
+def test_bf16_keeps_weights_optimizer_state_targets_and_losses_in_fp32_and_computes_the_same_update():
+    if not plumbing.fast_bf16(cuda=False):
+        pytest.skip("this CPU has no bf16 matrix instructions (--precision bf16 is refused here)")
+    (critic_loss, actor_loss, y, grads), (ref_critic, ref_actor, ref_y, ref_grads), agent = update_and_reference("bf16")
+    nets = [agent.actor, agent.critic, agent.critic_target]
+    assert all(p.dtype == torch.float32 for net in nets for p in net.parameters())
+    assert all(g.dtype == torch.float32 for g in grads.values()) and y.dtype == torch.float32
+    adam = [s for opt in (agent.actor_opt, agent.critic_opt) for s in opt.state.values()]
+    assert adam and all(v.dtype == torch.float32 for s in adam for v in s.values() if v.dim())
+    # The same update, rounded: bf16 keeps 8 significant bits. These bounds catch a wrong computation (a lost
+    # ReLU mask, a transposed gradient: errors of order 1), not the rounding, measured at 0.06% (losses), 0.24%
+    # (targets) and up to 4.4% (gradients, relative norm, the message net's first layer worst).
+    assert critic_loss == pytest.approx(ref_critic, rel=0.05)
+    assert actor_loss == pytest.approx(ref_actor, rel=0.05)
+    assert relative(y, ref_y) < 0.05
+    assert max(relative(grads[k], ref_grads[k]) for k in ref_grads) < 0.2
+
+
+def test_bf16_is_refused_with_one_line_where_the_device_has_no_fast_bf16(monkeypatch, capsys):
+    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)
+    with pytest.raises(SystemExit) as e:
+        plumbing.parse_args(gh.Args, gh.check_sampler_args, ["--precision", "bf16"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--precision bf16" in err and len(err.strip().splitlines()) == 1
+    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
+    assert plumbing.check_args(gh.Args(precision="bf16"), gh.check_sampler_args) is None
+
+
+@pytest.mark.parametrize(
+    "flags, fast", [({"avx2": True}, False), ({"avx512_bf16": True}, True), ({"amx_bf16": True}, True)]
+)
+def test_fast_bf16_on_cpu_means_amx_or_avx512_bf16(monkeypatch, flags, fast):
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: flags)
+    assert plumbing.fast_bf16(cuda=False) == (fast and torch.backends.mkldnn.is_available())
