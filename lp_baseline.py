@@ -454,7 +454,7 @@ class SAC:
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
         self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
         self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
-        if device.type == "cpu":
+        if torch.device(device).type == "cpu":
             keep_freed_memory()
 
     @torch.inference_mode()
