@@ -11,6 +11,8 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
 - sp_per_class: per class, the social partner's proposals (frontier and beyond), the agent's distinct
   encounters, and its success rate over time (first seed-mean of each condition that has proposals);
 - stepping_stones: the stepping stones left, per condition with a social partner.
+And tables.md, the same runs in numbers (Markdown): SR per class by epoch, the epoch at which each class
+first reaches 0.5, the distinct configs met by epoch, and the social partner's proposals.
 """
 
 from __future__ import annotations
@@ -47,8 +49,11 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
     if "epoch" in run and not np.array_equal(run["epoch"], np.arange(len(rows))):
         raise ValueError(f"{str(path)!r}: epochs are not 0, 1, 2... once each (a duplicated or missing epoch)")
     config = Path(folder) / "config.json"
-    try:  # the block count sets the class sizes
-        run["n_blocks"] = int(json.loads(config.read_text())["n_blocks"])
+    try:  # the block count sets the class sizes; the seed names the run in the tables
+        settings = json.loads(config.read_text())
+        run["n_blocks"] = int(settings["n_blocks"])
+        if "seed" in settings:
+            run["seed"] = int(settings["seed"])
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"cannot read n_blocks from {str(config)!r} ({type(e).__name__}: {e})") from None
     return run
@@ -213,6 +218,74 @@ def plot_social(plt, conditions: dict, out: Path):
     return True
 
 
+# ------------------------------------------------------------------------------------------------
+# Tables (Markdown, for the README)
+# ------------------------------------------------------------------------------------------------
+def run_label(name: str, run: dict) -> str:
+    return f"{name} seed {int(run['seed'])}" if "seed" in run else name
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = [header, ["---"] * len(header), *rows]
+    return "\n".join("| " + " | ".join(map(str, line)) + " |" for line in lines)
+
+
+def epochs_to_show(n: int, count: int = 8) -> list[int]:
+    """About `count` evenly spaced epochs, the last one included."""
+    return sorted({round(i * (n - 1) / (count - 1)) for i in range(count)}) if n > 1 else [0]
+
+
+def first_at(values: np.ndarray, level: float = 0.5) -> str:
+    """The first epoch at `level` or more, or how far short the run stayed."""
+    hit = np.flatnonzero(values >= level)
+    return str(int(hit[0])) if len(hit) else f"never (max {values.max():.2f})"
+
+
+def tables(conditions: dict) -> str:
+    """SR per class by epoch (mean over seeds, then each seed), the first epoch at 0.5 per run, the
+    distinct configs met by epoch per run (of the stacks and pyramids), and per run with a
+    social partner its proposals per class (frontier + beyond, summed over the run)."""
+    names = class_names(next(iter(conditions.values())))
+    n = min(len(r["global_sr"]) for runs in conditions.values() for r in runs)
+    shown = epochs_to_show(n)
+    segments = next(iter(conditions.values()))[0]["segments"]
+    out = [f"SR per class by epoch, mean over seeds (each seed), epochs of {int(segments[0])} segments:\n"]
+    rows = []
+    for cls in names:
+        for name, runs in conditions.items():
+            sr = stack(runs, f"sr_{cls}")
+            cells = [f"{sr[:, e].mean():.2f} ({', '.join(f'{v:.2f}' for v in sr[:, e])})" for e in shown]
+            rows.append([cls, name, *cells])
+    out.append(md_table(["class", "condition", *(f"epoch {e}" for e in shown)], rows))
+
+    labelled = [(run_label(name, r), r) for name, runs in conditions.items() for r in runs]
+    out.append("\nFirst epoch at SR 0.5 or more:\n")
+    out.append(md_table(["class", *(lab for lab, _ in labelled)],
+                        [[cls, *(first_at(r[f"sr_{cls}"][:n]) for _, r in labelled)] for cls in names]))  # fmt: skip
+
+    sizes = {k: len(v) for k, v in og.evaluation_classes(int(labelled[0][1]["n_blocks"])).items()}
+    built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
+    out.append(f"\nDistinct configs met by epoch ({' / '.join(f'{c} of {sizes[c]}' for c in built)}):\n")
+    out.append(md_table(["run", *(f"epoch {e}" for e in shown)],
+                        [[lab, *("/".join(str(int(r[f"encounters_{c}"][e])) for c in built) for e in shown)]
+                         for lab, r in labelled]))  # fmt: skip
+
+    social = [(lab, r) for lab, r in labelled if any(k.startswith("sp_frontier_") and r[k].sum() > 0 for k in r)]
+    if social:
+        kinds = [*names, "other"]
+        out.append(f"\nThe social partner's proposals over epochs 0-{n - 1} (frontier + beyond), social and"
+                   " rehearsal cycles, internalized pairs at the end:\n")  # fmt: skip
+
+        def proposed(r, k):
+            return f"{int(r[f'sp_frontier_{k}'][:n].sum())} + {int(r[f'sp_beyond_{k}'][:n].sum())}"
+
+        rows = [[lab, *(proposed(r, k) for k in kinds), f"{r['social_share'][:n].mean():.2f}",
+                 f"{r['rehearsal_share'][:n].mean():.2f}", str(int(r["internalized_pairs"][n - 1]))]
+                for lab, r in social]  # fmt: skip
+        out.append(md_table(["run", *kinds, "social share", "rehearsal share", "internalized pairs"], rows))
+    return "\n".join(out) + "\n"
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -248,7 +321,10 @@ def main(argv=None) -> int:
     plot_per_class(plt, conditions, out)
     social = plot_social(plt, conditions, out)
     made = ["global_sr", "sr_per_class"] + (["sp_per_class", "stepping_stones"] if social else [])
-    print(f"wrote {', '.join(f'{m}.png/.pdf' for m in made)} to {out}/")
+    tmp = out / ".tables.tmp.md"
+    tmp.write_text(tables(conditions))
+    os.replace(tmp, out / "tables.md")
+    print(f"wrote {', '.join(f'{m}.png/.pdf' for m in made)} and tables.md to {out}/")
     return 0
 
 

@@ -31,6 +31,7 @@ def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 
         for kind in ("frontier", "beyond"):
             row |= {f"sp_{kind}_{c}": int(social) * int(rng.integers(0, 9)) for c in [*classes, "other"]}
         row["stepping_stones"] = max(0, 30 - 3 * e) if social else 0
+        row |= dict(social_share=0.2 * social, rehearsal_share=0.4 * social, internalized_pairs=e * social)
         rows.append(row)
     with (folder / "progress.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -52,6 +53,33 @@ def test_plots_are_written_as_png_and_pdf_for_several_conditions_and_seeds(tmp_p
         assert png.startswith(b"\x89PNG") and len(png) > 10_000
         assert pdf.startswith(b"%PDF") and len(pdf) > 5_000
     assert not list(out.glob(".*"))  # no temporary files left
+    assert (out / "tables.md").read_text().startswith("SR per class by epoch")
+
+
+def test_tables_give_sr_by_epoch_the_first_epoch_at_half_configs_met_and_proposals(tmp_path):
+    social = [pr.read_run(fake_run(tmp_path / f"sp20_{s}", s, 0.5, True)) for s in (1, 2)]
+    alone = [pr.read_run(fake_run(tmp_path / f"sp0_{s}", s, 0.5, False)) for s in (1, 2)]
+    ramp = np.array([0.0, 0.1, 0.2, 0.3, 0.5, 0.4, 0.6, 0.7, 0.8, 0.9, 0.9, 1.0])
+    social[0]["sr_S2"], social[1]["sr_S2"] = ramp, np.roll(ramp, 2) * (np.arange(12) >= 2)  # 0.5 at 4, 6
+    alone[0]["sr_S2"], alone[1]["sr_S2"] = ramp * 0.4, ramp * 0.3  # never: at most 0.40 and 0.30
+    social[0]["encounters_S3"] = np.minimum(np.arange(12), 6)
+    social[0]["sp_frontier_P3"], social[0]["sp_beyond_P3"] = np.full(12, 2.0), np.full(12, 3.0)
+    alone[1] = {k: v[:10] if isinstance(v, np.ndarray) else v for k, v in alone[1].items()}  # a shorter run
+    text = pr.tables({"SP-20%": social, "SP-0%": alone})
+    cells = [line.strip("| ").split(" | ") for line in text.splitlines() if line.startswith("| ")]
+    rows = {row[0]: row for row in cells}  # the last table's row of each name
+
+    assert "epoch 9 |" in text and "epoch 10" not in text  # cut to the shortest run
+    assert rows["S2"][1:] == ["4", "6", "never (max 0.36)", "never (max 0.27)"]  # first epoch at 0.5
+    mean_s2 = next(row for row in cells if row[:2] == ["S2", "SP-20%"])
+    assert mean_s2[-1] == "0.80 (0.90, 0.70)" and mean_s2[2] == "0.00 (0.00, 0.00)"  # epochs 9 and 0
+    assert "(S2 of 6 / S3 of 6 / P3 of 3)" in text
+    met = next(row for row in cells if row[0] == "SP-20% seed 1")  # the configs table comes first
+    assert met[1].split("/")[1] == "0" and met[-1].split("/")[1] == "6"  # S3 met by epochs 0 and 9
+    proposals = rows["SP-20% seed 1"]
+    assert proposals[6] == "20 + 30"  # P3 over epochs 0-9: 10 x 2 frontier, 10 x 3 beyond
+    assert proposals[-3:] == ["0.20", "0.40", "9"]  # social share, rehearsal share, pairs at epoch 9
+    assert rows["SP-0% seed 1"][1] != "0 + 0"  # runs without a partner have no proposals row
 
 
 def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
