@@ -248,8 +248,10 @@ def tables(conditions: dict) -> str:
     names = class_names(next(iter(conditions.values())))
     n = min(len(r["global_sr"]) for runs in conditions.values() for r in runs)
     shown = epochs_to_show(n)
-    segments = next(iter(conditions.values()))[0]["segments"]
-    out = [f"SR per class by epoch, mean over seeds (each seed), epochs of {int(segments[0])} segments:\n"]
+    per_epoch = sorted({int(r["segments"][0]) for runs in conditions.values() for r in runs})
+    differ = " (they differ between runs)" if len(per_epoch) > 1 else ""
+    out = [f"SR per class by epoch, mean over seeds (each seed), epochs of {'/'.join(map(str, per_epoch))} "
+           f"segments{differ}:\n"]  # fmt: skip
     rows = []
     for cls in names:
         for name, runs in conditions.items():
@@ -259,7 +261,7 @@ def tables(conditions: dict) -> str:
     out.append(md_table(["class", "condition", *(f"epoch {e}" for e in shown)], rows))
 
     labelled = [(run_label(name, r), r) for name, runs in conditions.items() for r in runs]
-    out.append("\nFirst epoch at SR 0.5 or more:\n")
+    out.append(f"\nFirst epoch at SR 0.5 or more (epochs 0-{n - 1}):\n")
     out.append(md_table(["class", *(lab for lab, _ in labelled)],
                         [[cls, *(first_at(r[f"sr_{cls}"][:n]) for _, r in labelled)] for cls in names]))  # fmt: skip
 
@@ -270,7 +272,7 @@ def tables(conditions: dict) -> str:
                         [[lab, *("/".join(str(int(r[f"encounters_{c}"][e])) for c in built) for e in shown)]
                          for lab, r in labelled]))  # fmt: skip
 
-    social = [(lab, r) for lab, r in labelled if any(k.startswith("sp_frontier_") and r[k].sum() > 0 for k in r)]
+    social = [(lab, r) for lab, r in labelled if any(k.startswith("sp_frontier_") and r[k][:n].sum() > 0 for k in r)]
     if social:
         kinds = [*names, "other"]
         out.append(f"\nThe social partner's proposals over epochs 0-{n - 1} (frontier + beyond), social and"
@@ -306,6 +308,9 @@ def main(argv=None) -> int:
             conditions[name] = [read_run(Path(f)) for f in folders]
         except ValueError as e:
             parser.error(str(e))  # exit code 2, one line naming the file
+    blocks = {int(r["n_blocks"]) for runs in conditions.values() for r in runs}
+    if len(blocks) > 1:  # the classes, and so the panels and table rows, differ with the block count
+        parser.error(f"the runs differ in their number of blocks ({', '.join(map(str, sorted(blocks)))})")
     if args.reference is not None and args.reference not in conditions:
         parser.error(f"--reference {args.reference!r} is not one of the conditions: {', '.join(conditions)}")
     if not 0 < args.alpha < 1:

@@ -148,14 +148,20 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
         return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
-    if a.cuda and not torch.cuda.is_available():
-        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
     if a.precision not in ("fp32", "bf16"):
         return f"--precision must be 'fp32' or 'bf16', got {a.precision!r}"
+    return check_device(a) or check_run_control(a) or check_sampler_args(a)
+
+
+def check_device(a) -> str | None:
+    """--cuda and --precision bf16 against this machine: checked on the command line, and again on what a
+    checkpoint brings (a run trained with them may be resumed where they do not hold)."""
+    if a.cuda and not torch.cuda.is_available():
+        return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
     if a.precision == "bf16" and not fast_bf16(a.cuda):
         device = "GPU" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
         return f"--precision bf16: this {device} has no bf16 matrix instructions, where bf16 is no faster; use fp32"
-    return check_run_control(a) or check_sampler_args(a)
+    return None
 
 
 MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
@@ -442,7 +448,11 @@ def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
     # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
     # unless given again (threads, say: a different thread count changes float sums).
     keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
-    return dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
+    merged = dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
+    if why := check_device(merged):
+        print(f"error: {flag}: {why} (the checkpoint's setting; give the flag anew)", file=sys.stderr)
+        sys.exit(2)
+    return merged
 
 
 # --- the paper's trained agent (--init-from, --eval-only --checkpoint) ----------------------------

@@ -61,7 +61,7 @@ def test_tables_give_sr_by_epoch_the_first_epoch_at_half_configs_met_and_proposa
     alone = [pr.read_run(fake_run(tmp_path / f"sp0_{s}", s, 0.5, False)) for s in (1, 2)]
     ramp = np.array([0.0, 0.1, 0.2, 0.3, 0.5, 0.4, 0.6, 0.7, 0.8, 0.9, 0.9, 1.0])
     social[0]["sr_S2"], social[1]["sr_S2"] = ramp, np.roll(ramp, 2) * (np.arange(12) >= 2)  # 0.5 at 4, 6
-    alone[0]["sr_S2"], alone[1]["sr_S2"] = ramp * 0.4, ramp * 0.3  # never: at most 0.40 and 0.30
+    alone[0]["sr_S2"], alone[1]["sr_S2"] = ramp * 0.4, ramp * 0.3  # never: at most 0.36, 0.27 in epochs 0-9
     social[0]["encounters_S3"] = np.minimum(np.arange(12), 6)
     social[0]["sp_frontier_P3"], social[0]["sp_beyond_P3"] = np.full(12, 2.0), np.full(12, 3.0)
     alone[1] = {k: v[:10] if isinstance(v, np.ndarray) else v for k, v in alone[1].items()}  # a shorter run
@@ -79,7 +79,8 @@ def test_tables_give_sr_by_epoch_the_first_epoch_at_half_configs_met_and_proposa
     proposals = rows["SP-20% seed 1"]
     assert proposals[6] == "20 + 30"  # P3 over epochs 0-9: 10 x 2 frontier, 10 x 3 beyond
     assert proposals[-3:] == ["0.20", "0.40", "9"]  # social share, rehearsal share, pairs at epoch 9
-    assert rows["SP-0% seed 1"][1] != "0 + 0"  # runs without a partner have no proposals row
+    proposal_rows = text.split("The social partner's proposals")[1]
+    assert "SP-20% seed 2" in proposal_rows and "SP-0%" not in proposal_rows  # only runs with a partner
 
 
 def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
@@ -103,6 +104,16 @@ def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
     with pytest.raises(SystemExit) as e:
         pr.main([*argv, "--out", str(tmp_path / "f")])
     assert e.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
+    three = fake_run(tmp_path / "three", 0, 0.5, False)
+    five = fake_run(tmp_path / "five", 1, 0.5, False)
+    (five / "config.json").write_text(json.dumps({"n_blocks": 5, "seed": 1}))
+    with pytest.raises(SystemExit) as e:
+        pr.main(["--condition", "A", str(three), "--condition", "B", str(five), "--out", str(tmp_path / "f")])
+    assert e.value.code == 2 and "(3, 5)" in capsys.readouterr().err
+    assert not (tmp_path / "f").exists()  # refused before anything is written
 
 
 def test_regularized_incomplete_beta_matches_closed_forms():

@@ -2,6 +2,8 @@
 and gradients to float tolerance, checked against a plain re-implementation written here; --precision bf16
 keeps weights, optimizer state, targets and losses in fp32, and is refused where the device has no fast bf16."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -147,6 +149,17 @@ def test_bf16_is_refused_with_one_line_where_the_device_has_no_fast_bf16(monkeyp
     assert "--precision bf16" in err and len(err.strip().splitlines()) == 1
     monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
     assert plumbing.check_args(gh.Args(precision="bf16"), gh.check_sampler_args) is None
+
+
+def test_a_bf16_checkpoint_resumed_where_bf16_is_slow_is_refused_unless_fp32_is_given(monkeypatch, capsys):
+    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)
+    state = {"args": dataclasses.asdict(gh.Args(precision="bf16", n_blocks=3))}
+    with pytest.raises(SystemExit) as e:
+        plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume"}, state, "--resume")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and "--precision bf16" in err
+    args = plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume", "precision"}, state, "--resume")
+    assert args.precision == "fp32" and args.n_blocks == 3
 
 
 @pytest.mark.parametrize(
