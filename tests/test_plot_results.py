@@ -144,3 +144,26 @@ def test_welch_degrees_of_freedom_follow_the_unequal_variances(n):
     s = abs(t) / math.sqrt(3)
     expected = 1 - 2 * math.atan(abs(t)) / math.pi if n == 2 else 1 - 2 / math.pi * (math.atan(s) + s / (1 + s * s))
     assert pr.welch_p(x, y) == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_committed_social_partner_runs_still_plot_and_tabulate(tmp_path):
+    # tests/data/sp_3blocks_sample: the first 30 epochs of the runs in results/sp_3blocks (README "Does the
+    # social partner help?"), so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
+    sample = ROOT / "tests" / "data" / "sp_3blocks_sample"
+    social, alone = sorted(sample.glob("sp20_seed*")), sorted(sample.glob("sp0_seed*"))
+    assert social and alone
+    for run in [*social, *alone]:
+        full = (ROOT / "results" / "sp_3blocks" / run.name / "progress.csv").read_text().splitlines()
+        assert (run / "progress.csv").read_text().splitlines() == full[:31]  # the header and 30 epochs
+    out = tmp_path / "figures"
+    argv = ["--condition", "SP-20%", *map(str, social), "--condition", "SP-0%", *map(str, alone)]
+    assert pr.main([*argv, "--reference", "SP-0%", "--out", str(out)]) == 0
+    assert sorted(p.stem for p in out.glob("*.png")) == ["global_sr", "sp_per_class", "sr_per_class", "stepping_stones"]
+    cells = [line.strip("| ").split(" | ") for line in (out / "tables.md").read_text().splitlines()]
+    first = {row[0]: row[1:] for row in cells if row[0] in ("C1", "S2") and len(row) == len(social) + len(alone) + 1}
+    for cls in ("C1", "S2"):  # the first epoch at SR 0.5, read from the CSV files directly
+        for run, cell in zip([*social, *alone], first[cls], strict=True):
+            with (run / "progress.csv").open(newline="") as f:
+                sr = [float(r[f"sr_{cls}"]) for r in csv.DictReader(f)]
+            hits = [e for e, v in enumerate(sr) if v >= 0.5]
+            assert cell == (str(hits[0]) if hits else f"never (max {max(sr):.2f})")
