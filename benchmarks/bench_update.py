@@ -36,6 +36,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+import bench_learner  # noqa: E402 (this folder: the median of timed calls)
+
 BEFORE = "2f9820b"  # the update before issue 25's speed tricks
 N_BLOCKS, BATCH = 5, 256
 
@@ -93,12 +95,8 @@ def agent_from(mod, data: dict, precision: str):
 
 
 def median_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times) * 1e3
+    """bench_learner's median, without its warm-up calls (each condition here warms up on its own)."""
+    return bench_learner.median_ms(fn, repeats, warmup=0)
 
 
 # --- one condition, in its own process ---------------------------------------------------------------
