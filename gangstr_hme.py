@@ -150,6 +150,8 @@ class Args:
     """start a new run from this file's networks and normalizer (a checkpoint, or the paper's agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
+    freeze_normalizer: bool = False
+    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; README, "Fixed agent")"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     runs_dir: str = "runs"
@@ -1064,7 +1066,8 @@ class GoalSampler(Sampler):
         self.sp = SocialPartner(args.n_blocks)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
         names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
-        self.proposals = [f"sp_{kind}_{k}" for kind in ("frontier", "beyond") for k in names]
+        kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # proposed, then reached (count)
+        self.proposals = [f"sp_{kind}_{k}" for kind in kinds for k in names]
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
 
@@ -1095,21 +1098,26 @@ class GoalSampler(Sampler):
             frontier = self.sp.frontier_goal(graph, here, w.rng, elsewhere=only_frontier)
             base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
             if strategy == "frontier-and-beyond":  # the paper's
-                arrived = True
-                if frontier is not None:
-                    self.propose("frontier", frontier)
-                    arrived = yield from self.go_to_frontier(w, frontier)
+                arrived = frontier is None or (yield from self.proposed_frontier(w, frontier))
                 if arrived:
                     yield from self.beyond_goals(w, base)
             elif strategy == "frontier":  # --strategy frontier: go there deterministically, then reset
                 if frontier is not None:
-                    self.propose("frontier", frontier)
-                    yield from self.go_to_frontier(w, frontier)
+                    yield from self.proposed_frontier(w, frontier)
             else:  # --strategy beyond: the frontier stays hidden; one goal beyond it, retried until reached
                 yield from self.attempt_until_reached(w, self.sp.beyond_goal(graph, base, w.rng))
             if w.left == before:
                 break  # nothing to propose: the rest of the cycle is autotelic
         yield from self.autotelic_cycle(w)
+
+    def proposed_frontier(self, w: Worker, frontier: int):
+        """Program step: the partner's frontier goal, proposed, then gone to (go_to_frontier); each
+        counted in its class. Returns whether the agent arrived."""
+        self.count("frontier", frontier)
+        arrived = yield from self.go_to_frontier(w, frontier)
+        if arrived:
+            self.count("frontier_arrived", frontier)
+        return arrived
 
     def go_to_frontier(self, w: Worker, frontier: int):
         """Program step: deterministic policy along the safest path (SPEC §7); already there counts as
@@ -1126,11 +1134,12 @@ class GoalSampler(Sampler):
             beyond = self.sp.beyond_goal(self.learner.graph, start, w.rng)
             if beyond is None:
                 break
-            self.propose("beyond", beyond)
+            self.count("beyond", beyond)
             segment = yield Request(beyond, deterministic=False)
             if not segment.success:
                 self.internalize(w, start, beyond)
                 break
+            self.count("beyond_reached", beyond)
             start = beyond
 
     def attempt_until_reached(self, w: Worker, beyond: int | None):
@@ -1138,10 +1147,11 @@ class GoalSampler(Sampler):
         segment after segment without reset until reached or the budget is spent. Nothing is stored."""
         if beyond is None:
             return
-        self.propose("beyond", beyond)
+        self.count("beyond", beyond)
         while w.left > 0:
             segment = yield Request(beyond, deterministic=False)
             if segment.success:
+                self.count("beyond_reached", beyond)
                 break
 
     def internalize(self, w: Worker, frontier: int, beyond: int):
@@ -1163,7 +1173,9 @@ class GoalSampler(Sampler):
                 yield Request(beyond, deterministic=False)
 
     # --- bookkeeping: logs, what workers share, checkpoints ---------------------------------------
-    def propose(self, kind: str, goal: int):
+    def count(self, kind: str, goal: int):
+        """One of the partner's goals in its class: proposed ('frontier', 'beyond'), or the agent reached
+        it ('frontier_arrived': at the stepping stone; 'beyond_reached': the beyond goal's segment succeeded)."""
         name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
         self.stats[f"sp_{kind}_{name or 'other'}"] += 1
 
@@ -1178,7 +1190,8 @@ class GoalSampler(Sampler):
 
     def epoch_stats(self) -> dict:
         """Besides autotelic success: the share of social and rehearsal cycles, stepping stones left, the
-        number of distinct internalized pairs, the partner's proposals per class (frontier and beyond)."""
+        number of distinct internalized pairs, the partner's proposals per class (frontier and beyond) and
+        those the agent reached."""
         counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *self.proposals])
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
@@ -1282,7 +1295,8 @@ class Learner:
         stack = lambda field: np.array([[getattr(s, field) for s in ws] for ws in per_worker])  # noqa: E731
         ag, obs = stack("ag"), stack("obs")  # (workers, segments, T + 1, .)
         self.buffer.store(obs, ag, stack("g"), stack("actions"))
-        self.agent.normalizer.update(obs)
+        if not self.args.freeze_normalizer:  # --freeze-normalizer
+            self.agent.normalizer.update(obs)
         segments = [s for ws in per_worker for s in ws]
         t = time.perf_counter()
         outcomes = all_gather_rows([(s.start, s.final, og.to_mask(s.g), s.success, s.stable) for s in segments])
@@ -1403,8 +1417,7 @@ def train_loop(run: Run, out: plumbing.RunFolder) -> int:
     while run.epoch < run.args.n_epochs:
         while run.cycle < run.args.n_cycles:
             one_cycle(run)
-            critic_loss = run.tally["losses"]["critic_loss"]
-            plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,} | critic loss {critic_loss:.3f}")
+            plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,}")  # then the critic loss, or no update
             if out.stop_requested():
                 return out.stop(run)
         sr = out.evaluate(run, evaluate)  # SR per class (SPEC §9); None: a stop request interrupted it

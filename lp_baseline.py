@@ -134,6 +134,8 @@ class Args:
     """start a new run from this file's networks and normalizer (a checkpoint, or the paper's agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
+    freeze_normalizer: bool = False
+    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; README, "Fixed agent")"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     runs_dir: str = "runs"
@@ -1173,7 +1175,8 @@ class Learner:
         stack = lambda field: np.array([[getattr(s, field) for s in ws] for ws in per_worker])  # noqa: E731
         ag, obs = stack("ag"), stack("obs")  # (workers, segments, T + 1, .)
         self.buffer.store(obs, ag, stack("g"), stack("actions"))
-        self.agent.normalizer.update(obs)
+        if not self.args.freeze_normalizer:  # --freeze-normalizer
+            self.agent.normalizer.update(obs)
         segments = [s for ws in per_worker for s in ws]
         t = time.perf_counter()
         outcomes = all_gather_rows([(s.start, s.final, og.to_mask(s.g), s.success, s.stable) for s in segments])
@@ -1294,8 +1297,7 @@ def train_loop(run: Run, out: plumbing.RunFolder) -> int:
     while run.epoch < run.args.n_epochs:
         while run.cycle < run.args.n_cycles:
             one_cycle(run)
-            critic_loss = run.tally["losses"]["critic_loss"]
-            plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,} | critic loss {critic_loss:.3f}")
+            plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,}")  # then the critic loss, or no update
             if out.stop_requested():
                 return out.stop(run)
         sr = out.evaluate(run, evaluate)  # SR per class (SPEC §9); None: a stop request interrupted it

@@ -27,6 +27,7 @@ import copy
 import csv
 import dataclasses
 import gc
+import hashlib
 import inspect
 import itertools
 import json
@@ -573,12 +574,15 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
     steps = learner.segments * run.args.segment_len  # all workers'
     goals, wins, tries = all_sum(np.array([run.sampler.goals, tally["wins"], tally["tries"]], dtype=np.float64))
     seconds = tally["collect"] + tally["update"] + tally["eval"]
-    met = np.array(sorted(learner.encountered), dtype=np.int64)
+    met = np.array(sorted(learner.encountered), dtype=np.int64)  # configs met at any step of a segment
+    nodes = np.asarray(learner.graph.masks, dtype=np.int64)
     row = plain(dict(
         epoch=run.epoch, goals=int(goals), segments=learner.segments, env_steps=steps, global_sr=sr["global"],
         train_success=wins / max(1, tries),
         **{f"sr_{k}": sr[k] for k in run.classes},
         **{f"encounters_{k}": int(np.isin(og.to_mask(m), met).sum()) for k, m in run.classes.items()},
+        # discoveries: the class's configs that are agent-graph nodes (met at a segment's stable end, SPEC §6)
+        **{f"agent_nodes_{k}": int(np.isin(og.to_mask(m), nodes).sum()) for k, m in run.classes.items()},
         **run.sampler.epoch_stats(),
         agent_nodes=learner.graph.n_nodes, agent_edges=learner.graph.n_edges, sr_classes=len(learner.graph.sr),
         **tally["losses"],
@@ -593,11 +597,19 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
     return row
 
 
+def learning_text(args, critic_loss: float) -> str:
+    """What the last cycle's SAC updates did, for the console: the critic loss, or that none ran (--n-updates 0;
+    with --freeze-normalizer as well, a fixed agent)."""
+    if not math.isnan(critic_loss):
+        return f"critic loss {critic_loss:.3f}"
+    return "fixed agent: no SAC update, normalizer frozen" if args.freeze_normalizer else "no SAC update"
+
+
 def cycle_progress(run, detail: str):
     """The in-epoch console line, after the first cycle and every tenth of an epoch: where the run is, the
-    script's `detail`, env steps per second while training (collecting and updating; the epoch's line also
-    counts its evaluation), and the time left in the epoch and in the run, from this epoch's cycles so far
-    and the last epoch's evaluation time (none yet in the first epoch)."""
+    script's `detail` and learning_text, env steps per second while training (collecting and updating; the
+    epoch's line also counts its evaluation), and the time left in the epoch and in the run, from this
+    epoch's cycles so far and the last epoch's evaluation time (none yet in the first epoch)."""
     a, tally = run.args, run.tally
     if run.cycle != 1 and run.cycle % max(1, a.n_cycles // 10) != 0:
         return
@@ -606,7 +618,8 @@ def cycle_progress(run, detail: str):
     per_cycle, per_eval = seconds / max(1, run.cycle), run.rows[-1]["time_eval"] if run.rows else 0.0
     epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval
     run_left = epoch_left + (a.n_epochs - run.epoch - 1) * (per_cycle * a.n_cycles + per_eval)
-    progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | train {rate:.0f} steps/s | "
+    learning = learning_text(a, tally["losses"]["critic_loss"])
+    progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | {learning} | train {rate:.0f} steps/s | "
              f"left: epoch {duration(epoch_left)}, run {duration(run_left)}")  # fmt: skip
 
 
@@ -660,7 +673,7 @@ def tensorboard_tag(column: str) -> str:
         return f"eval/{column}"
     if column in LOSSES:
         return f"losses/{column}"
-    if column.startswith("encounters_") or column in ("agent_nodes", "agent_edges", "sr_classes"):
+    if column.startswith(("encounters_", "agent_nodes")) or column in ("agent_edges", "sr_classes"):
         return f"graph/{column}"
     if column.startswith("time_") or column == "steps_per_second":
         return f"time/{column}"
@@ -885,6 +898,8 @@ class RunFolder:
                     print(f"error: --runs-dir {args.runs_dir!r}: cannot create {str(self.dir)!r}: {e}", file=sys.stderr)
                     sys.exit(2)
                 config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
+                if args.init_from:  # which file (the paper's agent is not in the repository: its hash names it)
+                    config["init_from_sha256"] = hashlib.sha256(Path(args.init_from).read_bytes()).hexdigest()
                 (self.dir / "config.json").write_text(json.dumps(config, indent=2))
         if init is not None:
             progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
@@ -929,7 +944,9 @@ class RunFolder:
             self.logger.log(row)
         self.saved_at = (run.epoch, run.cycle)
         per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
+        learned = "" if not math.isnan(row["critic_loss"]) else f"{learning_text(run.args, math.nan)} | "
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
+                 f"{learned}"
                  f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
                  final=True)  # fmt: skip
 
