@@ -218,6 +218,39 @@ def plot_social(plt, conditions: dict, out: Path):
     return True
 
 
+def has_discoveries(conditions: dict) -> bool:
+    """Whether the runs log the agent graph's nodes per class (progress.csv's agent_nodes_{class})."""
+    return all(f"agent_nodes_{c}" in r for runs in conditions.values() for r in runs for c in class_names([r]))
+
+
+def plot_discoveries(plt, conditions: dict, out: Path):
+    """Per class, the class's configs that are agent-graph nodes (discovered: met at a segment's stable end,
+    SPEC §6) over time, mean +- std over seeds; and the agent graph's nodes in all."""
+    names = class_names(next(iter(conditions.values())))
+    sizes = {k: len(v) for k, v in og.evaluation_classes(int(next(iter(conditions.values()))[0]["n_blocks"])).items()}
+    fig, axes = panels(plt, len(names), "configurations discovered per class (agent-graph nodes, mean +- std)")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
+    for ax, cls in zip(axes, names, strict=False):
+        for color, (name, runs) in zip(colors, conditions.items(), strict=False):
+            band(ax, stack(runs, "segments")[0], stack(runs, f"agent_nodes_{cls}"), name, color)
+        ax.set(title=f"{cls} (of {sizes[cls]})", ylim=(-0.02 * sizes[cls], 1.02 * sizes[cls]))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.supxlabel("episodes")
+    fig.tight_layout()
+    save(fig, out, "discovered_per_class")
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for color, (name, runs) in zip(colors, conditions.items(), strict=False):
+        band(ax, stack(runs, "segments")[0], stack(runs, "agent_nodes"), f"{name} ({len(runs)} seeds)", color)
+    ax.set(xlabel="episodes", ylabel="agent-graph nodes", title="the agent's semantic graph", yscale="log")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    save(fig, out, "agent_nodes")
+    plt.close(fig)
+
+
 # ------------------------------------------------------------------------------------------------
 # Tables (Markdown, for the README)
 # ------------------------------------------------------------------------------------------------
@@ -241,10 +274,11 @@ def first_at(values: np.ndarray, level: float = 0.5) -> str:
     return str(int(hit[0])) if len(hit) else f"never (max {values.max():.2f})"
 
 
-def tables(conditions: dict) -> str:
+def tables(conditions: dict, reference: str | None = None) -> str:
     """SR per class by epoch (mean over seeds, then each seed), the first epoch at 0.5 per run, the
     distinct configs met by epoch per run (of the stacks and pyramids), and per run with a
-    social partner its proposals per class (frontier + beyond, summed over the run)."""
+    social partner its proposals per class (frontier + beyond, summed over the run) and what the agent
+    reached of them; where the runs log them, the configurations discovered per class (discovery_tables)."""
     names = class_names(next(iter(conditions.values())))
     n = min(len(r["global_sr"]) for runs in conditions.values() for r in runs)
     shown = epochs_to_show(n)
@@ -285,7 +319,52 @@ def tables(conditions: dict) -> str:
                  f"{r['rehearsal_share'][:n].mean():.2f}", str(int(r["internalized_pairs"][n - 1]))]
                 for lab, r in social]  # fmt: skip
         out.append(md_table(["run", *kinds, "social share", "rehearsal share", "internalized pairs"], rows))
+        if all(f"sp_frontier_arrived_{k}" in r for _, r in social for k in kinds):
+            out.append(f"\nWhat the agent reached of them over epochs 0-{n - 1}: frontier arrivals (at the proposed "
+                       "stepping stone) + beyond goals reached:\n")  # fmt: skip
+
+            def reached(r, k):
+                arrived, beyond = (
+                    int(r[f"sp_{kind}_{k}"][:n].sum()) for kind in ("frontier_arrived", "beyond_reached")
+                )
+                return f"{arrived} + {beyond}"
+
+            out.append(md_table(["run", *kinds], [[lab, *(reached(r, k) for k in kinds)] for lab, r in social]))
+    if has_discoveries(conditions):
+        out.append(discovery_tables(conditions, labelled, names, sizes, shown, n, reference))
     return "\n".join(out) + "\n"
+
+
+def discovery_tables(conditions: dict, labelled: list, names: list, sizes: dict, shown: list, n: int, reference) -> str:
+    """Configurations discovered (agent-graph nodes) per class: by epoch, the first epoch with one, and at the
+    end, each condition against the reference (Welch's t-test)."""
+    out = ["\nConfigurations discovered per class (agent-graph nodes, SPEC §6: a config met at a segment's stable "
+           "end, with its block permutations), mean over seeds (each seed):\n"]  # fmt: skip
+    rows = []
+    for cls in names:
+        for name, runs in conditions.items():
+            found = stack(runs, f"agent_nodes_{cls}")[:, :n]
+            cells = [f"{found[:, e].mean():.1f} ({', '.join(str(int(v)) for v in found[:, e])})" for e in shown]
+            rows.append([f"{cls} (of {sizes[cls]})", name, *cells])
+    out.append(md_table(["class", "condition", *(f"epoch {e}" for e in shown)], rows))
+
+    def first_found(r, cls):
+        found = np.flatnonzero(r[f"agent_nodes_{cls}"][:n] > 0)
+        return str(int(found[0])) if len(found) else "never"
+
+    out.append(f"\nFirst epoch at whose end the class has a discovered configuration (epochs 0-{n - 1}):\n")
+    out.append(md_table(["run", *names], [[lab, *(first_found(r, c) for c in names)] for lab, r in labelled]))
+
+    ref = reference if reference in conditions else next(iter(conditions))
+    others = [c for c in conditions if c != ref]
+    out.append(f"\nDiscovered at epoch {n - 1}, mean +- std over seeds; Welch's t-test against {ref} (p):\n")
+    rows = []
+    for cls in names:
+        final = {c: stack(runs, f"agent_nodes_{cls}")[:, n - 1] for c, runs in conditions.items()}
+        cells = [f"{final[c].mean():.1f} +- {final[c].std(ddof=1) if len(final[c]) > 1 else 0:.1f}" for c in conditions]
+        rows.append([f"{cls} (of {sizes[cls]})", *cells, *(f"{welch_p(final[c], final[ref]):.3g}" for c in others)])
+    out.append(md_table(["class", *conditions, *(f"p, {c}" for c in others)], rows))
+    return "\n".join(out)
 
 
 def main(argv=None) -> int:
@@ -326,8 +405,11 @@ def main(argv=None) -> int:
     plot_per_class(plt, conditions, out)
     social = plot_social(plt, conditions, out)
     made = ["global_sr", "sr_per_class"] + (["sp_per_class", "stepping_stones"] if social else [])
+    if has_discoveries(conditions):
+        plot_discoveries(plt, conditions, out)
+        made += ["discovered_per_class", "agent_nodes"]
     tmp = out / ".tables.tmp.md"
-    tmp.write_text(tables(conditions))
+    tmp.write_text(tables(conditions, args.reference))
     os.replace(tmp, out / "tables.md")
     print(f"wrote {', '.join(f'{m}.png/.pdf' for m in made)} and tables.md to {out}/")
     return 0

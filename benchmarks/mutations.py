@@ -290,6 +290,23 @@ MUTATIONS = [
     Mutation("time left in the epoch without its evaluation", P,
              "epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval",
              "epoch_left = per_cycle * (a.n_cycles - run.cycle)", "tests/test_plumbing.py -k progress"),
+    # --- what the partner opens (issue 33): discoveries, arrivals, the fixed agent, evaluation sub-goals -----
+    Mutation("agent nodes per class count the configs met", P,
+             "int(np.isin(og.to_mask(m), nodes).sum()) for k, m", "int(np.isin(og.to_mask(m), met).sum()) for k, m",
+             f"{TG} -k agent_nodes_per_class"),
+    Mutation("every frontier proposal counts as an arrival", G,
+             '        if arrived:\n            self.count("frontier_arrived", frontier)',
+             '        if True:\n            self.count("frontier_arrived", frontier)',
+             f"{TH} -k counted_in_their_class"),
+    Mutation("a reached beyond goal is not counted", G,
+             '            self.count("beyond_reached", beyond)\n            start = beyond',
+             "            start = beyond", f"{TH} -k counted_in_their_class"),
+    Mutation("--freeze-normalizer ignored", G, "if not self.args.freeze_normalizer:", "if True:",
+             f"{TG} -k a_fixed_agent"),
+    Mutation("the console shows a nan loss when no update ran", P, "    if not math.isnan(critic_loss):\n",
+             "    if True:\n", "tests/test_paper_agent.py -k 'a_fixed_agent or init_from_starts'"),
+    Mutation("evaluation keeps a long path's first sub-goals", G, "path[1:][-args.max_eval_subgoals :]",
+             "path[1:][: args.max_eval_subgoals]", f"{TG} -k max_eval_subgoals_of"),
 ]
 # fmt: on
 

@@ -1,6 +1,8 @@
 """gangstr_hme.py, the learner: GNN actor-critic, SAC, HER, normalizer, semantic graph and planners,
 the training loop, its outputs, resume and command line (SPEC §5, §6, §9, §10)."""
 
+import contextlib
+import copy
 import csv
 import dataclasses
 import itertools
@@ -76,7 +78,7 @@ def test_tiny_run_collects_updates_evaluates_logs_and_checkpoints(tmp_path, n_bl
         assert step == 0 and value == pytest.approx(float(row[c]), rel=1e-6, nan_ok=True), c
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert state["counters"]["epoch"] == 1 and state["args"]["n_blocks"] == n_blocks
-    assert "SR" in out.stdout and "epoch   0" in out.stdout
+    assert "SR" in out.stdout and "epoch   0" in out.stdout and re.search(r"\| critic loss \d+\.\d{3} \|", out.stdout)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -607,6 +609,68 @@ def test_plans_without_a_path_go_straight_and_long_paths_keep_start_and_last_con
     assert gh.sample_path(g, 5, 0, rng, explore=False) == [5, 0]  # unreachable
     assert gh.sample_path(g, 3, 3, rng, explore=False) == [3, 3]  # start == goal
     assert gh.sample_path(g, 0, 99, rng, explore=False) == [0, 99]  # unknown goal
+
+
+def test_evaluation_follows_the_last_max_eval_subgoals_of_a_longer_path_those_that_end_at_the_goal(monkeypatch):
+    run = gh.Run(gh.Args(n_blocks=3, eval_goals_per_class=1, max_eval_subgoals=3), torch.device("cpu"))
+    (w,) = run.workers
+    plans = []
+
+    def long_path(graph, start, goal, rng, explore):  # start, 7 configs between, then the goal
+        plans.append([start, *range(1000 + 10 * len(plans), 1007 + 10 * len(plans)), goal])
+        return plans[-1]
+
+    monkeypatch.setattr(gh, "sample_path", long_path)
+    program, asked = gh.evaluation(run, w, run.learner.graph, np.zeros(len(run.classes)), None), []
+    w.left = math.inf
+    request = next(program)
+    with contextlib.suppress(StopIteration):
+        while True:  # every sub-goal reached, at once
+            asked.append(request.goal)
+            request = program.send(gh.Segment(None, None, None, None, success=True, stable=True))
+    assert len(plans) == len(run.classes)
+    assert asked == [sub for path in plans for sub in path[-3:]]  # the last 3, ending at each goal
+
+
+def test_agent_nodes_per_class_count_the_class_configs_in_the_agent_graph_not_those_met():
+    run = gh.Run(gh.Args(n_blocks=3), torch.device("cpu"))
+    stack = int(og.to_mask(og.make_config(3, close=[(0, 1)], above=[(0, 1)])))
+    run.learner.graph.add_config(stack)  # a node, with its block permutations (SPEC §6)
+    run.learner.encountered = {stack, int(og.to_mask(og.make_config(3, close=[(1, 2)])))}  # met, not nodes
+    row = plumbing.finish_epoch(run, dict.fromkeys([*run.classes, "global"], 0.0))
+    nodes = set(run.learner.graph.masks)
+    for name, members in run.classes.items():
+        assert row[f"agent_nodes_{name}"] == sum(int(og.to_mask(m)) in nodes for m in members), name
+    assert row["agent_nodes_S2"] == len(run.classes["S2"]) > row["encounters_S2"] == 1
+    assert row["agent_nodes_C1"] == 0 and row["encounters_C1"] == 1
+    assert plumbing.tensorboard_tag("agent_nodes_S2") == "graph/agent_nodes_S2"
+
+
+def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_while_the_graph_grows():
+    args = gh.Args(n_blocks=3, n_updates=0, freeze_normalizer=True, n_segments=3, segment_len=10, stable_steps=3)
+    run = gh.Run(args, torch.device("cpu"))
+    agent = run.learner.agent
+    agent.normalizer.add_prior(np.linspace(-1, 1, 55), np.full(55, 0.5), 1000)  # as --init-from's file would
+
+    def state():
+        nets = {k: copy.deepcopy(getattr(agent, k).state_dict()) for k in plumbing.NETWORKS}
+        return nets, {k: copy.deepcopy(getattr(agent.normalizer, k)) for k in ("sum", "sumsq", "count", "mean", "std")}
+
+    (nets, norm), segments = state(), []
+    for _ in range(3):
+        gh.one_cycle(run)
+        segments.append(run.learner.segments)
+    (nets_after, norm_after) = state()
+    assert segments == [3, 6, 9] and run.learner.graph.n_nodes > 0  # goals sampled, segments run, graph updated
+    assert norm_after["count"] == norm["count"] == 1000
+    for k in ("sum", "sumsq", "mean", "std"):
+        assert np.array_equal(norm_after[k], norm[k]), k
+    for net in ("actor", "critic", "critic_target"):  # every weight, bit for bit
+        assert all(torch.equal(nets_after[net][k], nets[net][k]) for k in nets[net]), net
+    for opt in ("actor_opt", "critic_opt"):  # Adam never stepped
+        assert nets_after[opt]["state"] == nets[opt]["state"] == {}, opt
+    assert math.isnan(run.tally["losses"]["critic_loss"])
+    assert plumbing.learning_text(args, math.nan) == "fixed agent: no SAC update, normalizer frozen"
 
 
 def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():

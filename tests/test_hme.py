@@ -4,7 +4,7 @@ internalization and rehearsal, the ablations (SPEC §7)."""
 import csv
 import subprocess
 import sys
-from collections import deque
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -412,3 +412,28 @@ def test_logged_social_share_matches_sp_ratio(tmp_path):
     (run_dir,) = tmp_path.iterdir()
     (row,) = csv.DictReader((run_dir / "progress.csv").open())
     assert abs(float(row["social_share"]) - 0.25) < 4 * np.sqrt(0.25 * 0.75 / 400)
+
+
+def test_frontier_arrivals_and_beyond_goals_reached_are_counted_in_their_class(monkeypatch, sp):
+    run = hme_run()
+    run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
+    tries = []
+
+    def script(goal, deterministic):
+        tries.append(goal)
+        return len(tries) % 3 != 0  # every third segment fails, frontier legs and beyond goals alike
+
+    world = ScriptedWorld(run, monkeypatch, APART, script)
+    for _ in range(3):
+        one_cycle_of(run, run.sampler.social_cycle)
+    # From the world's log: each episode's first segment (deterministic) is its frontier leg, the rest
+    # (stochastic) beyond goals; a reached one counts in the class of its goal, a failed one nowhere.
+    want = Counter()
+    for goal, mode, ok in (entry for entry in world.log if entry != "reset"):
+        kind = "frontier_arrived" if mode == "det" else "beyond_reached"
+        want[f"sp_{kind}_{sp.oracle.class_of(og.from_mask(goal, N)) or 'other'}"] += ok
+    got = {k: v for k, v in run.sampler.stats.items() if v and ("_arrived_" in k or "_reached_" in k)}
+    assert got == {k: v for k, v in want.items() if v}
+    legs = sum(mode == "det" for _, mode, _ in (entry for entry in world.log if entry != "reset"))
+    assert 0 < sum(v for k, v in got.items() if "arrived" in k) < legs  # some legs failed: not every proposal
+    assert 0 < sum(v for k, v in got.items() if "reached" in k)

@@ -3,6 +3,7 @@ networks (--checkpoint, --init-from), a file holding anything else is refused un
 the oracle graph (--plan-on oracle), and --init-from starts a run that resumes like any other."""
 
 import csv
+import hashlib
 import json
 import os
 import pathlib
@@ -295,6 +296,20 @@ def test_init_from_starts_a_new_run_from_the_files_networks_and_normalizer_only(
         assert all(torch.equal(state[net][k], want[k]) for k in want), net
     assert state["normalizer"]["count"] == 500 + 2 * 3 * 11  # the prior, then 2 cycles x 3 segments x 11 obs
     assert state["counters"]["epoch"] == 1 and state["actor_opt"]["state"] == {}  # fresh Adam, never stepped
+    assert config["init_from_sha256"] == hashlib.sha256((tmp_path / "gangstr.pt").read_bytes()).hexdigest()
+    assert "| no SAC update |" in out.stdout and "critic loss" not in out.stdout
+
+
+def test_a_fixed_agent_keeps_the_files_normalizer_and_says_so_on_the_progress_and_epoch_lines(tmp_path):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
+    out = run_script("--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--n-updates", "0", "--n-epochs", "1",
+                     "--freeze-normalizer", "--init-prior-count", "500", runs_dir=tmp_path / "runs")  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (run,) = (tmp_path / "runs").iterdir()
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["normalizer"]["count"] == 500  # the prior alone
+    lines = [line for line in out.stdout.splitlines() if line.lstrip().startswith("epoch")]
+    assert len(lines) == 3  # two cycle lines, one epoch line
+    assert all("| fixed agent: no SAC update, normalizer frozen |" in line for line in lines), lines
 
 
 def test_a_run_started_with_init_from_resumes_into_the_uninterrupted_run(tmp_path):
