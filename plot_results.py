@@ -160,19 +160,24 @@ def panels(plt, n: int, title: str):
     return fig, axes.flat
 
 
-def plot_per_class(plt, conditions: dict, out: Path):
+def plot_per_class(plt, conditions: dict, out: Path, column: str = "sr", name: str = "sr_per_class"):
+    """One panel per class: `column`_{class} over episodes, mean +- std over seeds per condition. "sr": the
+    success rate; "agent_nodes": the class's configs discovered (agent-graph nodes), out of the class's size."""
     names = class_names(next(iter(conditions.values())))
-    fig, axes = panels(plt, len(names), "success rate per class (mean +- std over seeds)")
+    sizes = {k: len(v) for k, v in og.evaluation_classes(int(next(iter(conditions.values()))[0]["n_blocks"])).items()}
+    what = dict(sr="success rate", agent_nodes="configurations discovered (agent-graph nodes)")[column]
+    fig, axes = panels(plt, len(names), f"{what} per class (mean +- std over seeds)")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
     for ax, cls in zip(axes, names, strict=False):
-        for color, (name, runs) in zip(colors, conditions.items(), strict=False):
-            band(ax, stack(runs, "segments")[0], stack(runs, f"sr_{cls}"), name, color)
-        ax.set(title=cls, ylim=(0, 1))
+        for color, (label, runs) in zip(colors, conditions.items(), strict=False):
+            band(ax, stack(runs, "segments")[0], stack(runs, f"{column}_{cls}"), label, color)
+        top = 1 if column == "sr" else sizes[cls]
+        ax.set(title=cls if column == "sr" else f"{cls} (of {top})", ylim=(-0.02 * top, 1.02 * top))
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.supxlabel("episodes")
     fig.tight_layout()
-    save(fig, out, "sr_per_class")
+    save(fig, out, name)
     plt.close(fig)
 
 
@@ -226,21 +231,8 @@ def has_discoveries(conditions: dict) -> bool:
 def plot_discoveries(plt, conditions: dict, out: Path):
     """Per class, the class's configs that are agent-graph nodes (discovered: met at a segment's stable end,
     SPEC §6) over time, mean +- std over seeds; and the agent graph's nodes in all."""
-    names = class_names(next(iter(conditions.values())))
-    sizes = {k: len(v) for k, v in og.evaluation_classes(int(next(iter(conditions.values()))[0]["n_blocks"])).items()}
-    fig, axes = panels(plt, len(names), "configurations discovered per class (agent-graph nodes, mean +- std)")
+    plot_per_class(plt, conditions, out, "agent_nodes", "discovered_per_class")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
-    for ax, cls in zip(axes, names, strict=False):
-        for color, (name, runs) in zip(colors, conditions.items(), strict=False):
-            band(ax, stack(runs, "segments")[0], stack(runs, f"agent_nodes_{cls}"), name, color)
-        ax.set(title=f"{cls} (of {sizes[cls]})", ylim=(-0.02 * sizes[cls], 1.02 * sizes[cls]))
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.supxlabel("episodes")
-    fig.tight_layout()
-    save(fig, out, "discovered_per_class")
-    plt.close(fig)
-
     fig, ax = plt.subplots(figsize=(6, 4))
     for color, (name, runs) in zip(colors, conditions.items(), strict=False):
         band(ax, stack(runs, "segments")[0], stack(runs, "agent_nodes"), f"{name} ({len(runs)} seeds)", color)

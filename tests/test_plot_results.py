@@ -167,3 +167,48 @@ def test_the_committed_social_partner_runs_still_plot_and_tabulate(tmp_path):
                 sr = [float(r[f"sr_{cls}"]) for r in csv.DictReader(f)]
             hits = [e for e, v in enumerate(sr) if v >= 0.5]
             assert cell == (str(hits[0]) if hits else f"never (max {max(sr):.2f})")
+
+
+def markdown_table_after(text: str, heading: str) -> list[list[str]]:
+    """The rows (cells) of the first Markdown table after the line starting with `heading`, its header first."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(heading))
+    end = next((i for i, line in enumerate(lines[start + 2 :]) if not line.startswith("|")), None)
+    table = lines[start + 2 : start + 2 + end] if end is not None else lines[start + 2 :]
+    return [line.strip("| ").split(" | ") for line in table if not line.startswith("| ---")]
+
+
+def test_the_committed_discovery_runs_plot_and_tabulate_what_the_partner_opens(tmp_path):
+    # tests/data/discovery_5blocks_sample: the first 10 epochs of two seeds of each arm of results/discovery_5blocks
+    # (README "What the partner opens"), so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
+    sample = ROOT / "tests" / "data" / "discovery_5blocks_sample"
+    arms = {name: sorted(sample.glob(f"{stem}_seed*")) for name, stem in
+            (("SP-0", "sp0"), ("SP-0.2%", "sp0.2pct"), ("SP-20%", "sp20"))}  # fmt: skip
+    runs = [run for folders in arms.values() for run in folders]
+    assert all(len(folders) == 2 for folders in arms.values())
+    for run in runs:
+        full = (ROOT / "results" / "discovery_5blocks" / run.name / "progress.csv").read_text().splitlines()
+        assert (run / "progress.csv").read_text().splitlines() == full[:11]  # the header and 10 epochs
+    out = tmp_path / "figures"
+    argv = [arg for name, folders in arms.items() for arg in ("--condition", name, *map(str, folders))]
+    assert pr.main([*argv, "--reference", "SP-0", "--out", str(out)]) == 0
+    assert {"discovered_per_class", "agent_nodes"} <= {p.stem for p in out.glob("*.png")}
+    text = (out / "tables.md").read_text()
+    csvs = {}
+    for run in runs:
+        with (run / "progress.csv").open(newline="") as f:
+            csvs[run] = list(csv.DictReader(f))
+    classes = list(og.evaluation_classes(5))
+    first = markdown_table_after(text, "First epoch at whose end the class has a discovered configuration")
+    assert first[0] == ["run", *classes] and len(first) == len(runs) + 1
+    for run, row in zip(runs, first[1:], strict=True):  # read from the CSV files directly
+        for cls, cell in zip(classes, row[1:], strict=True):
+            found = [e for e, r in enumerate(csvs[run]) if int(r[f"agent_nodes_{cls}"]) > 0]
+            assert cell == (str(found[0]) if found else "never"), (run.name, cls)
+    final = markdown_table_after(text, "Discovered at epoch 9")
+    assert final[0] == ["class", *arms, "p, SP-0.2%", "p, SP-20%"]
+    for row in final[1:]:
+        cls = row[0].split(" (of ")[0]
+        for cell, folders in zip(row[1:4], arms.values(), strict=True):
+            values = [int(csvs[run][-1][f"agent_nodes_{cls}"]) for run in folders]
+            assert cell.startswith(f"{np.mean(values):.1f} +- "), (cls, cell)
