@@ -1102,8 +1102,8 @@ class GoalSampler(Sampler):
         loss.backward()
         sum_grads(list(self.vds.parameters()))
         self.vds_opt.step()
-        explained = 1 - mse.mean().double() / target.var().double().clamp(min=1e-12)  # tensors: Learner.train reads
-        return dict(vds_loss=mse.sum(), vds_explained=explained)
+        explained = 1 - mse.detach().mean().double() / target.var().double().clamp(min=1e-12)  # Learner.train reads
+        return dict(vds_loss=mse.detach().sum(), vds_explained=explained)  # (tensors: once a cycle, not per update)
 
     def epoch_stats(self) -> dict:
         """Besides autotelic success: mean disagreement of the scored candidates and its spread."""
