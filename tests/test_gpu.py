@@ -83,6 +83,71 @@ def test_torchrun_with_more_processes_than_gpus_exits_2_naming_the_rule_before_a
 
 
 # ------------------------------------------------------------------------------------------------
+# 3. No host-device wait per update: the batch crosses in one copy; the statistics are read once a cycle
+# ------------------------------------------------------------------------------------------------
+def batch_and_agent():
+    """A 3-block batch of 16 from a replay of random segments, and an agent whose normalizer is fitted to them."""
+    agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(1, 20, 11, 55)).astype(np.float32) * 3
+    agent.normalizer.update(obs)
+    buf = gh.ReplayBuffer(1, 20, 10, 55, 9)
+    buf.store(obs, rng.choice(np.int8([-1, 1]), (1, 20, 11, 9)), np.ones((1, 20, 9), np.int8),
+              rng.uniform(-1, 1, (1, 20, 10, 4)).astype(np.float32))  # fmt: skip
+    return buf.sample(16, [rng], 0.8, "final"), agent
+
+
+def test_a_batch_crosses_to_the_gpu_in_one_copy_holding_the_normalized_observations_and_not_the_raw_ones(
+    monkeypatch,
+):
+    batch, agent = batch_and_agent()
+    copies = []
+    to = torch.Tensor.to
+
+    def recorded_to(self, *args, **kwargs):
+        out = to(self, *args, **kwargs)
+        if out.device != self.device:
+            copies.append((self.clone(), kwargs.get("non_blocking", False)))
+        return out
+
+    monkeypatch.setattr(torch.Tensor, "to", recorded_to)
+    gpu = type("GPU", (), dict(device=torch.device("meta"), normalizer=agent.normalizer))()  # a SAC on a GPU
+    on_gpu = gh.SAC.to_tensors(gpu, batch)
+    ((sent, non_blocking),) = copies  # one copy, which the CPU does not wait for
+    normalized = dict(obs=agent.normalizer(batch["obs"]), obs_next=agent.normalizer(batch["obs_next"]))
+    assert non_blocking
+    assert np.array_equal(sent.numpy(), np.concatenate([normalized.get(k, v).ravel() for k, v in batch.items()]))
+    assert {k: (t.shape, t.device.type) for k, t in on_gpu.items()} == {k: (v.shape, "meta") for k, v in batch.items()}
+    on_cpu = agent.to_tensors(batch)  # on a CPU: no copy at all
+    assert len(copies) == 1 and on_cpu["action"].data_ptr() == batch["action"].ctypes.data
+    assert np.array_equal(on_cpu["obs"].numpy(), normalized["obs"])
+
+
+def test_a_cycle_reads_its_updates_statistics_once_and_logs_their_means(monkeypatch):
+    """Reading a tensor waits for the GPU to finish all the work before it: an update that read its losses would
+    keep the CPU from drawing the next batch meanwhile. The updates return tensors; Learner.train reads them in
+    one transfer, and logs the mean of each update's numbers."""
+    batch, fitted = batch_and_agent()
+    learner = gh.Learner(gh.Args(n_blocks=3, n_updates=4, batch_size=16, num_envs=2), torch.device("cpu"))
+    learner.buffer.size, learner.buffer.sample = 1, lambda *args: {k: np.concatenate([v, v]) for k, v in batch.items()}
+    learner.agent.normalizer = fitted.normalizer
+    infos, update = [], learner.agent.update
+    monkeypatch.setattr(learner.agent, "update", lambda b: infos.append(update(b)) or infos[-1])
+    reads = []
+    for name in ("item", "tolist", "cpu", "__float__"):  # a transfer to the host (numpy() refuses a GPU tensor)
+        method = getattr(torch.Tensor, name)
+        monkeypatch.setattr(
+            torch.Tensor, name, lambda self, *a, _m=method, _n=name, **k: reads.append(_n) or _m(self, *a, **k)
+        )
+    logged = learner.train([np.random.default_rng(0)] * 2)
+    assert len(infos) == 4 and all(isinstance(v, torch.Tensor) for i in infos for v in i.values())
+    assert len(reads) == 1  # the cycle's one read
+    monkeypatch.undo()
+    expected = {k: np.mean([float(i[k]) for i in infos]) for k in infos[0]}
+    assert logged == expected and set(logged) == {"critic_loss", "actor_loss", "target", "q", "entropy"}
+
+
+# ------------------------------------------------------------------------------------------------
 # 4. Fast bf16 on a GPU: bf16 tensor cores on this process's own GPU, asked without making a context
 # ------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
@@ -143,70 +208,6 @@ def test_every_torchrun_process_waits_30_minutes_at_a_collective_on_a_gpu_as_on_
     plumbing.init_workers(gh.Args(cuda=cuda))
     assert calls[-1] == (backend, datetime.timedelta(minutes=30))
     assert calls[:-1] == ([("set_device", 0)] if cuda else [])
-
-
-# ------------------------------------------------------------------------------------------------
-# 3. No host-device wait per update: the batch crosses in one copy; the statistics are read once a cycle
-# ------------------------------------------------------------------------------------------------
-def batch_and_agent():
-    agent = gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu"))
-    rng = np.random.default_rng(0)
-    obs = rng.normal(size=(1, 20, 11, 55)).astype(np.float32) * 3
-    agent.normalizer.update(obs)
-    buf = gh.ReplayBuffer(1, 20, 10, 55, 9)
-    buf.store(obs, rng.choice(np.int8([-1, 1]), (1, 20, 11, 9)), np.ones((1, 20, 9), np.int8),
-              rng.uniform(-1, 1, (1, 20, 10, 4)).astype(np.float32))  # fmt: skip
-    return buf.sample(16, [rng], 0.8, "final"), agent
-
-
-def test_a_batch_crosses_to_the_gpu_in_one_copy_holding_the_normalized_observations_and_not_the_raw_ones(
-    monkeypatch,
-):
-    batch, agent = batch_and_agent()
-    copies = []
-    to = torch.Tensor.to
-
-    def recorded_to(self, *args, **kwargs):
-        out = to(self, *args, **kwargs)
-        if out.device != self.device:
-            copies.append((self.clone(), kwargs.get("non_blocking", False)))
-        return out
-
-    monkeypatch.setattr(torch.Tensor, "to", recorded_to)
-    gpu = type("GPU", (), dict(device=torch.device("meta"), normalizer=agent.normalizer))()  # a SAC on a GPU
-    on_gpu = gh.SAC.to_tensors(gpu, batch)
-    ((sent, non_blocking),) = copies  # one copy, which the CPU does not wait for
-    normalized = dict(obs=agent.normalizer(batch["obs"]), obs_next=agent.normalizer(batch["obs_next"]))
-    assert non_blocking
-    assert np.array_equal(sent.numpy(), np.concatenate([normalized.get(k, v).ravel() for k, v in batch.items()]))
-    assert {k: (t.shape, t.device.type) for k, t in on_gpu.items()} == {k: (v.shape, "meta") for k, v in batch.items()}
-    on_cpu = agent.to_tensors(batch)  # on a CPU: no copy at all
-    assert len(copies) == 1 and on_cpu["action"].data_ptr() == batch["action"].ctypes.data
-    assert np.array_equal(on_cpu["obs"].numpy(), normalized["obs"])
-
-
-def test_a_cycle_reads_its_updates_statistics_once_and_logs_their_means(monkeypatch):
-    """Reading a tensor waits for the GPU to finish all the work before it: an update that read its losses would
-    keep the CPU from drawing the next batch meanwhile. The updates return tensors; Learner.train reads them in
-    one transfer, and logs the mean of each update's numbers."""
-    batch, _ = batch_and_agent()
-    learner = gh.Learner(gh.Args(n_blocks=3, n_updates=4, batch_size=16, num_envs=2), torch.device("cpu"))
-    learner.buffer.size, learner.buffer.sample = 1, lambda *args: {k: np.concatenate([v, v]) for k, v in batch.items()}
-    learner.agent.normalizer = batch_and_agent()[1].normalizer
-    infos, update = [], learner.agent.update
-    monkeypatch.setattr(learner.agent, "update", lambda b: infos.append(update(b)) or infos[-1])
-    reads = []
-    for name in ("item", "tolist", "cpu", "__float__"):  # a transfer to the host (numpy() refuses a GPU tensor)
-        method = getattr(torch.Tensor, name)
-        monkeypatch.setattr(
-            torch.Tensor, name, lambda self, *a, _m=method, _n=name, **k: reads.append(_n) or _m(self, *a, **k)
-        )
-    logged = learner.train([np.random.default_rng(0)] * 2)
-    assert len(infos) == 4 and all(isinstance(v, torch.Tensor) for i in infos for v in i.values())
-    assert len(reads) == 1  # the cycle's one read
-    monkeypatch.undo()
-    expected = {k: np.mean([float(i[k]) for i in infos]) for k in infos[0]}
-    assert logged == expected and set(logged) == {"critic_loss", "actor_loss", "target", "q", "entropy"}
 
 
 # ------------------------------------------------------------------------------------------------
