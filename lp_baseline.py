@@ -440,7 +440,7 @@ class ReplayBuffer:
 # ------------------------------------------------------------------------------------------------
 class SAC:
     def __init__(self, args: Args, obs_dim: int, device):
-        self.args, self.device = args, device
+        self.args, self.device = args, torch.device(device)
         self.gi = GraphIndex(args.n_blocks, device)
         self.actor = Actor(args.n_blocks).to(device)
         self.critic = Critic(args.n_blocks).to(device)
@@ -456,7 +456,7 @@ class SAC:
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
         self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
         self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
-        if torch.device(device).type == "cpu":
+        if self.device.type == "cpu":
             keep_freed_memory()
 
     @torch.inference_mode()
@@ -511,8 +511,9 @@ class SAC:
         if self.n_updates % self.args.target_update_every == 0:
             self.soft_update()
         workers = self.args.num_envs  # the losses are sums over workers; the logs show one worker's mean
-        return dict(critic_loss=critic_loss.item() / workers, actor_loss=actor_loss.item() / workers,
-                    target=target.mean().item(), **{k: v.item() for k, v in stats.items()})  # fmt: skip
+        info = dict(critic_loss=critic_loss.double() / workers, actor_loss=actor_loss.double() / workers,
+                    target=target.mean(), **stats)  # fmt: skip
+        return {k: v.detach() for k, v in info.items()}  # tensors: a read waits for the update (Learner.train's)
 
     @torch.no_grad()
     def soft_update(self):
@@ -520,10 +521,9 @@ class SAC:
             tp.mul_(self.args.polyak).add_(p, alpha=1 - self.args.polyak)
 
     def to_tensors(self, b: dict) -> dict:
-        out = {k: torch.as_tensor(v, device=self.device) for k, v in b.items()}
-        out["obs"] = torch.as_tensor(self.normalizer(b["obs"]), device=self.device)
-        out["obs_next"] = torch.as_tensor(self.normalizer(b["obs_next"]), device=self.device)
-        return out
+        """The batch on the device, obs and obs_next normalized (the raw ones stay here): plumbing.to_device."""
+        b = b | dict(obs=self.normalizer(b["obs"]), obs_next=self.normalizer(b["obs_next"]))
+        return plumbing.to_device(b, self.device)
 
 
 def keep_freed_memory():
@@ -980,7 +980,7 @@ class Sampler:
       cycle(w)                        worker w's cycle program: yields Requests, and must spend all of
                                       w.left (every worker runs n_segments segments a cycle)
       after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
-      after_update(batch, target)     after each SAC update, its batch and TD targets: a dict to log
+      after_update(batch, target)     after each SAC update, its batch and TD targets: a dict of 0-d tensors to log
       epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
       state_dict(), load_state_dict(s)    its checkpoint entries (top-level keys of the checkpoint, which
                                       load_state_dict receives whole: names no other entry has)
@@ -1189,13 +1189,13 @@ class Learner:
 
     def train(self, rngs: list[np.random.Generator], after_update=lambda batch, target: {}) -> dict:
         """The cycle's SAC updates, each on a batch from every worker's replay (drawn with `rngs`, the
-        workers' streams); after each, the goal sampler's hook. The mean of each logged value."""
+        workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
         args, infos = self.args, []
         her_prob = 1 - 1 / (1 + args.her_k)
         for _ in range(args.n_updates if self.buffer.size else 0):
             info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
-        return {k: float(np.mean([i[k] for i in infos])) for k in infos[0]} if infos else {}
+        return plumbing.update_means(infos)  # one wait for the GPU a cycle, not one an update
 
 
 # ------------------------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import contextlib
 import copy
 import csv
 import dataclasses
+import datetime
 import gc
 import hashlib
 import inspect
@@ -156,23 +157,33 @@ def check_args(a, check_sampler_args) -> str | None:
 
 def check_device(a) -> str | None:
     """--cuda and --precision bf16 against this machine: checked on the command line, and again on what a
-    checkpoint brings (a run trained with them may be resumed where they do not hold)."""
+    checkpoint brings (a run trained with them may be resumed where they do not hold). Probes that make no
+    CUDA context: a torchrun process must make its first on its own GPU (init_workers)."""
     if a.cuda and not torch.cuda.is_available():
         return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
+    if a.cuda and local_gpu() >= torch.cuda.device_count():  # else set_device's traceback ("invalid device ordinal")
+        return (f"--cuda: this process's GPU is LOCAL_RANK {local_gpu()}, but this machine has "
+                f"{torch.cuda.device_count()}: one process per GPU (torchrun --nproc-per-node no more)")  # fmt: skip
     if a.precision == "bf16" and not fast_bf16(a.cuda):
-        device = "GPU" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
+        device = "GPU (compute capability under 8.0)" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
         return f"--precision bf16: this {device} has no bf16 matrix instructions, where bf16 is no faster; use fp32"
     return None
+
+
+def local_gpu() -> int:
+    """The GPU of this process: torchrun's LOCAL_RANK (0 without torchrun)."""
+    return int(os.environ.get("LOCAL_RANK", "0"))
 
 
 MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
 
 
 def fast_bf16(cuda: bool) -> bool:
-    """Whether --precision bf16 can pay here: the GPU supports bf16, or the CPU has bf16 matrix instructions
-    (x86: AMX or AVX512-BF16; ARM: BF16) for oneDNN; without them, bf16 products are emulated."""
-    if cuda:
-        return torch.cuda.is_bf16_supported()
+    """Whether --precision bf16 can pay here: this process's GPU has bf16 tensor cores (compute capability 8.0
+    on, or AMD's), or the CPU has bf16 matrix instructions (x86: AMX or AVX512-BF16; ARM: BF16) for oneDNN;
+    without them, bf16 products are emulated."""
+    if cuda:  # not torch.cuda.is_bf16_supported(): it counts emulation (V100, T4) and makes a context on GPU 0
+        return bool(torch.version.hip) or torch.cuda.get_device_capability(local_gpu()) >= (8, 0)
     caps = torch.cpu.get_capabilities()
     has_bf16 = any(caps.get(name) for name in ("amx_bf16", "avx512_bf16", "bf16", "sve_bf16"))
     return torch.backends.mkldnn.is_available() and has_bf16
@@ -216,11 +227,18 @@ def init_workers(args) -> torch.device:
     if args.threads:
         torch.set_num_threads(args.threads)
     cuda = args.cuda and torch.cuda.is_available()
+    if cuda and args.precision == "bf16":  # cuBLAS would otherwise sum bf16 products in bf16, not fp32 as on CPU
+        torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False  # (test_update's bounds)
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
         if cuda:
-            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
-        dist.init_process_group("nccl" if cuda else "gloo")
+            torch.cuda.set_device(local_gpu())
+        dist.init_process_group("nccl" if cuda else "gloo", timeout=COLLECTIVE_TIMEOUT)
     return torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
+
+
+# How long a process waits at a collective: while process 0 saves a checkpoint, the others wait at the next
+# one; a replay of several GB on a slow disk takes minutes. Gloo's default; nccl's (10 minutes) would abort.
+COLLECTIVE_TIMEOUT = datetime.timedelta(minutes=30)
 
 
 def rank() -> int:
@@ -287,6 +305,20 @@ def sum_grads(params: list[torch.Tensor]):
         dist.all_reduce(flat)
         for g, synced in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
             g.copy_(synced.view_as(g))
+
+
+def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    """float32 arrays (an update's batch) as tensors on `device` (a speed trick; README "Installing for a GPU").
+    On CPU, the arrays themselves: no copy. On a GPU, one copy of them all from pinned memory, which the CPU
+    need not wait for: it draws the next batch while the GPU works (it took ten blocking copies, the observations
+    twice, before). Torch's cache of pinned memory reuses the block once its copy is done."""
+    if device.type == "cpu":
+        return {k: torch.from_numpy(v) for k, v in arrays.items()}
+    sizes = [v.size for v in arrays.values()]
+    staging = torch.empty(sum(sizes), pin_memory=torch.cuda.is_available())
+    np.concatenate([v.ravel() for v in arrays.values()], out=staging.numpy())
+    parts = staging.to(device, non_blocking=True).split(sizes)
+    return {k: t.view(v.shape) for (k, v), t in zip(arrays.items(), parts, strict=True)}
 
 
 def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
@@ -432,8 +464,11 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "save_buffer", "resume")  # --resume may change
+# --eval-only's own; among them precision: acting never computes in bf16 (update_products), so a run trained
+# in bf16 is evaluated in fp32 unless the flag says otherwise, where bf16 is slow too.
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs", "resume")  # fmt: skip
+                "threads", "cuda", "precision", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs",
+                "resume")  # fmt: skip
 
 
 def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
@@ -603,6 +638,16 @@ def learning_text(args, critic_loss: float) -> str:
     if not math.isnan(critic_loss):
         return f"critic loss {critic_loss:.3f}"
     return "fixed agent: no SAC update, normalizer frozen" if args.freeze_normalizer else "no SAC update"
+
+
+def update_means(infos: list[dict]) -> dict[str, float]:
+    """The mean over a cycle's updates of each value they log (0-d tensors, on the device), read in one transfer:
+    a read waits for the GPU to finish the work before it, so once a cycle rather than once an update."""
+    keys = list(infos[0]) if infos else []
+    if not keys:
+        return {}
+    values = torch.stack([torch.stack([i[k].detach().double() for k in keys]) for i in infos]).cpu().numpy()
+    return {k: float(np.mean(values[:, j])) for j, k in enumerate(keys)}  # as np.mean of the numbers
 
 
 def cycle_progress(run, detail: str):

@@ -11,7 +11,7 @@ one process with one worker, one process with two (--num-envs 2), and two proces
 The second part builds a 24-worker learner in this process (--num-envs 24) and times --cycles-24
 cycles after a first one (which fills the replays), split into acting (the batched forward passes),
 physics (the envs' steps), planning and graph updates, SAC updates (each over 24 x 256 samples), and
-the rest (the workers' programs, segment bookkeeping, replay stores, normalizer).
+the rest (the workers' programs, segment bookkeeping, replay stores, normalizer); with --cuda, the peak GPU memory.
 
     python benchmarks/bench_scaling.py [--n-cycles 10] [--repeats 3] [--n-blocks 5] [--cycles-24 2] [--cuda]
 """
@@ -122,6 +122,8 @@ def main():
           f"(mean of {args.cycles_24}; 24 x 10 segments x 40 steps, 30 updates of 24 x 256)")  # fmt: skip
     for k, v in split.items():
         print(f"  {k:18s} {v:7.2f} s  {100 * v / total:5.1f}%")
+    if args.cuda:  # the 24 workers' networks, optimizers and update activations (replays stay in host memory)
+        print(f"  peak GPU memory    {torch.cuda.max_memory_allocated() / 2**30:7.2f} GiB")
 
 
 if __name__ == "__main__":

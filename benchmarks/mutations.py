@@ -49,6 +49,7 @@ class Mutation:
 G, LP, VDS, ENV, ORACLE = "gangstr_hme.py", "lp_baseline.py", "vds_baseline.py", "fetch5_env.py", "oracle_graph.py"
 P = "plumbing.py"
 TG, TH, TB, TE, TO = (f"tests/test_{x}.py" for x in ("gangstr", "hme", "baselines", "env", "oracle_graph"))
+TGPU = "tests/test_gpu.py"
 
 # fmt: off
 MUTATIONS = [
@@ -277,6 +278,42 @@ MUTATIONS = [
              "tests/test_paper_agent.py -k 'foreign_object and touch'"),
     Mutation("--resume ignores flags that contradict the checkpoint", P,
              "    if bad:\n", "    if bad and args.eval_only:\n", f"{TG} -k 'contradict and resume'"),
+    # --- what a --cuda user meets, checked on a CPU (issue 35) ----------------------------------------
+    Mutation("gpu: --eval-only keeps a bf16 checkpoint's --precision", P,
+             '"threads", "cuda", "precision", "eval_only",', '"threads", "cuda", "eval_only",',
+             f"{TGPU} -k evaluated_in_fp32"),
+    Mutation("gpu: a torchrun process past the last GPU not refused", P,
+             "if a.cuda and local_gpu() >= torch.cuda.device_count():",
+             "if a.cuda and local_gpu() > torch.cuda.device_count():", f"{TGPU} -k more_processes_than_gpus"),
+    Mutation("gpu: fast bf16 counts compute capability 7 (emulated)", P,
+             "torch.cuda.get_device_capability(local_gpu()) >= (8, 0)",
+             "torch.cuda.get_device_capability(local_gpu()) >= (7, 0)", f"{TGPU} -k emulated"),
+    Mutation("gpu: fast bf16 asked of GPU 0, not the process's own", P,
+             "torch.cuda.get_device_capability(local_gpu()) >= (8, 0)",
+             "torch.cuda.get_device_capability(0) >= (8, 0)", f"{TGPU} -k own_gpu"),
+    Mutation("gpu: cuBLAS left to sum bf16 products in bf16", P,
+             "allow_bf16_reduced_precision_reduction = False", "allow_bf16_reduced_precision_reduction = True",
+             f"{TGPU} -k sums_its_bf16"),
+    Mutation("gpu: nccl keeps its 10-minute timeout", P,
+             'init_process_group("nccl" if cuda else "gloo", timeout=COLLECTIVE_TIMEOUT)',
+             'init_process_group("nccl" if cuda else "gloo", timeout=None if cuda else COLLECTIVE_TIMEOUT)',
+             f"{TGPU} -k 30_minutes"),
+    Mutation("gpu: the batch copied array by array, waited for", P,
+             "parts = staging.to(device, non_blocking=True).split(sizes)",
+             "parts = [torch.from_numpy(v.ravel()).to(device) for v in arrays.values()]", f"{TGPU} -k one_copy"),
+    Mutation("gpu: raw observations sent too", G,
+             'b = b | dict(obs=self.normalizer(b["obs"]),', 'b = b | dict(raw=b["obs"], obs=self.normalizer(b["obs"]),',
+             f"{TGPU} -k one_copy"),
+    Mutation("gpu: a CPU batch copied", P, "return {k: torch.from_numpy(v) for k, v in arrays.items()}",
+             "return {k: torch.tensor(v) for k, v in arrays.items()}", f"{TGPU} -k one_copy"),
+    Mutation("gpu: an update reads its statistics itself", G, "return {k: v.detach() for k, v in info.items()}",
+             "return {k: v.detach().cpu() for k, v in info.items()}", f"{TGPU} -k reads_its_updates"),
+    Mutation("gpu: a cycle logs its last update's statistics, not their mean", P,
+             "return {k: float(np.mean(values[:, j])) for j, k in enumerate(keys)}",
+             "return {k: float(values[-1, j]) for j, k in enumerate(keys)}", f"{TGPU} -k reads_its_updates"),
+    Mutation("gpu: the smoke check fails where there is no GPU", "benchmarks/gpu_smoke.py",
+             "        return 0\n    start = time.perf_counter()", "        return 1\n    start = time.perf_counter()",
+             f"{TGPU} -k smoke"),
     # --- a worker's streams and outcomes (issue 26's defects), the progress line (issue 24) -----------
     Mutation("a worker and its env seeded with the same number: one stream read twice", G,
              ("self.rng = np.random.default_rng(mine)", "self.env.reset(seed=int(env.generate_state(1)[0]))"),

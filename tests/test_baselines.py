@@ -235,6 +235,6 @@ def test_vds_heads_regress_the_critics_td_targets():
         with torch.no_grad():  # SPEC §8: each head's squared error to the critic's TD target, summed over heads
             heads = sampler.vds(sampler.readout(batch["obs"], batch["ag"], batch["g"], batch["action"]))
             by_hand = ((heads - target[None]) ** 2).mean(1).sum().item()
-        assert sampler.train_vds(batch, target)["vds_loss"] == pytest.approx(by_hand, rel=1e-5)
+        assert float(sampler.train_vds(batch, target)["vds_loss"]) == pytest.approx(by_hand, rel=1e-5)
         losses.append(by_hand)
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])

@@ -331,6 +331,7 @@ def test_a_compiled_update_computes_the_eager_updates_losses_and_gradients():
         agent = gh.SAC(gh.Args(n_blocks=3, compile=compiled), 55, torch.device("cpu"))
         agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
         info = agent.update(filled_buffer().sample(32, [np.random.default_rng(0)], 0.8, "final"))
+        info = {k: float(v) for k, v in info.items()}  # 0-d tensors, read by Learner.train once a cycle
         grads = {n: p.grad for net in (agent.actor, agent.critic) for n, p in net.named_parameters()}
         got[compiled] = info, grads
     (eager_info, eager_grads), (info, grads) = got[False], got[True]
