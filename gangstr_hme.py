@@ -1066,8 +1066,8 @@ class GoalSampler(Sampler):
         self.sp = SocialPartner(args.n_blocks)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
         names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
-        kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # proposed, then reached (count)
-        self.proposals = [f"sp_{kind}_{k}" for kind in kinds for k in names]
+        kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # goals proposed; goals reached (count)
+        self.partner_counts = [f"sp_{kind}_{k}" for kind in kinds for k in names]
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
 
@@ -1098,7 +1098,9 @@ class GoalSampler(Sampler):
             frontier = self.sp.frontier_goal(graph, here, w.rng, elsewhere=only_frontier)
             base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
             if strategy == "frontier-and-beyond":  # the paper's
-                arrived = frontier is None or (yield from self.proposed_frontier(w, frontier))
+                arrived = True
+                if frontier is not None:
+                    arrived = yield from self.proposed_frontier(w, frontier)
                 if arrived:
                     yield from self.beyond_goals(w, base)
             elif strategy == "frontier":  # --strategy frontier: go there deterministically, then reset
@@ -1111,8 +1113,8 @@ class GoalSampler(Sampler):
         yield from self.autotelic_cycle(w)
 
     def proposed_frontier(self, w: Worker, frontier: int):
-        """Program step: the partner's frontier goal, proposed, then gone to (go_to_frontier); each
-        counted in its class. Returns whether the agent arrived."""
+        """Program step: the partner's frontier goal, proposed, then gone to (go_to_frontier; already there
+        counts as arrived); each counted in its class. Returns whether the agent arrived."""
         self.count("frontier", frontier)
         arrived = yield from self.go_to_frontier(w, frontier)
         if arrived:
@@ -1192,14 +1194,14 @@ class GoalSampler(Sampler):
         """Besides autotelic success: the share of social and rehearsal cycles, stepping stones left, the
         number of distinct internalized pairs, the partner's proposals per class (frontier and beyond) and
         those the agent reached."""
-        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *self.proposals])
+        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *self.partner_counts])
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
             social_share=counts["social_cycles"] / cycles,
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
-            **{k: counts[k] for k in self.proposals},
+            **{k: counts[k] for k in self.partner_counts},
         )
 
     def state_dict(self) -> dict:

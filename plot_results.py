@@ -10,9 +10,12 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
 - sr_per_class: success rate per evaluation class, one panel per class;
 - sp_per_class: per class, the social partner's proposals (frontier and beyond), the agent's distinct
   encounters, and its success rate over time (first seed-mean of each condition that has proposals);
-- stepping_stones: the stepping stones left, per condition with a social partner.
+- stepping_stones: the stepping stones left, per condition with a social partner;
+- discovered_per_class and agent_nodes, for runs that log the agent graph's nodes per class: per class, its
+  configurations that are agent-graph nodes; the graph's size.
 And tables.md, the same runs in numbers (Markdown): SR per class by epoch, the epoch at which each class
-first reaches 0.5, the distinct configs met by epoch, and the social partner's proposals.
+first reaches 0.5, the distinct configs met by epoch, the social partner's proposals and what the agent
+reached of them; the configurations discovered per class (by epoch, first epoch, Welch's test at the end).
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ import oracle_graph as og
 # Reading runs
 # ------------------------------------------------------------------------------------------------
 def read_run(folder: Path) -> dict[str, np.ndarray]:
-    """Columns of a run folder's progress.csv as float arrays (one entry per epoch)."""
+    """Columns of a run folder's progress.csv as float arrays (one entry per epoch; an empty cell, a column that
+    a run resumed from an older version did not log before, is nan)."""
     path = Path(folder) / "progress.csv"
     if not path.is_file():
         raise ValueError(f"no progress.csv in run folder {str(folder)!r}")
@@ -43,7 +47,7 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
     if not rows or "global_sr" not in rows[0]:
         raise ValueError(f"{str(path)!r} has no rows with a global_sr column")
     try:
-        run = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+        run = {k: np.array([float(r[k]) if r[k] != "" else math.nan for r in rows]) for k in rows[0]}
     except (TypeError, ValueError) as e:
         raise ValueError(f"{str(path)!r} holds a value that is not a number ({e})") from None
     if "epoch" in run and not np.array_equal(run["epoch"], np.arange(len(rows))):
@@ -229,8 +233,8 @@ def has_discoveries(conditions: dict) -> bool:
 
 
 def plot_discoveries(plt, conditions: dict, out: Path):
-    """Per class, the class's configs that are agent-graph nodes (discovered: met at a segment's stable end,
-    SPEC §6) over time, mean +- std over seeds; and the agent graph's nodes in all."""
+    """Per class, the class's configs that are agent-graph nodes (discovered: met at the start or the end of a
+    training segment whose end is stable, SPEC §6) over time, mean +- std over seeds; and the graph's size."""
     plot_per_class(plt, conditions, out, "agent_nodes", "discovered_per_class")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -327,11 +331,14 @@ def tables(conditions: dict, reference: str | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
-def discovery_tables(conditions: dict, labelled: list, names: list, sizes: dict, shown: list, n: int, reference) -> str:
+def discovery_tables(
+    conditions: dict, labelled: list, names: list, sizes: dict, shown: list, n: int, reference: str | None
+) -> str:
     """Configurations discovered (agent-graph nodes) per class: by epoch, the first epoch with one, and at the
     end, each condition against the reference (Welch's t-test)."""
-    out = ["\nConfigurations discovered per class (agent-graph nodes, SPEC §6: a config met at a segment's stable "
-           "end, with its block permutations), mean over seeds (each seed):\n"]  # fmt: skip
+    out = ["\nConfigurations discovered per class (agent-graph nodes, SPEC §6: a config met at the start or the end "
+           "of a training segment whose end is stable, with its block permutations), mean over seeds (each "
+           "seed):\n"]  # fmt: skip
     rows = []
     for cls in names:
         for name, runs in conditions.items():

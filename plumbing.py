@@ -163,7 +163,8 @@ def check_device(a) -> str | None:
         return "--cuda: no CUDA device here (torch.cuda.is_available() is False)"
     if a.cuda and local_gpu() >= torch.cuda.device_count():  # else set_device's traceback ("invalid device ordinal")
         return (f"--cuda: this process's GPU is LOCAL_RANK {local_gpu()}, but this machine has "
-                f"{torch.cuda.device_count()}: one process per GPU (torchrun --nproc-per-node no more)")  # fmt: skip
+                f"{torch.cuda.device_count()} GPU(s): one process per GPU (torchrun --nproc-per-node no "
+                "more)")  # fmt: skip
     if a.precision == "bf16" and not fast_bf16(a.cuda):
         device = "GPU (compute capability under 8.0)" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
         return f"--precision bf16: this {device} has no bf16 matrix instructions, where bf16 is no faster; use fp32"
@@ -315,7 +316,8 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
     if device.type == "cpu":
         return {k: torch.from_numpy(v) for k, v in arrays.items()}
     sizes = [v.size for v in arrays.values()]
-    staging = torch.empty(sum(sizes), pin_memory=torch.cuda.is_available())
+    assert all(v.dtype == np.float32 for v in arrays.values()), {k: v.dtype for k, v in arrays.items()}
+    staging = torch.empty(sum(sizes), dtype=torch.float32, pin_memory=torch.cuda.is_available())
     np.concatenate([v.ravel() for v in arrays.values()], out=staging.numpy())
     parts = staging.to(device, non_blocking=True).split(sizes)
     return {k: t.view(v.shape) for (k, v), t in zip(arrays.items(), parts, strict=True)}
@@ -616,7 +618,8 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
         train_success=wins / max(1, tries),
         **{f"sr_{k}": sr[k] for k in run.classes},
         **{f"encounters_{k}": int(np.isin(og.to_mask(m), met).sum()) for k, m in run.classes.items()},
-        # discoveries: the class's configs that are agent-graph nodes (met at a segment's stable end, SPEC §6)
+        # discoveries: the class's configs that are agent-graph nodes (met at the start or the end of a training
+        # segment whose end is stable, with their block permutations: SPEC §6)
         **{f"agent_nodes_{k}": int(np.isin(og.to_mask(m), nodes).sum()) for k, m in run.classes.items()},
         **run.sampler.epoch_stats(),
         agent_nodes=learner.graph.n_nodes, agent_edges=learner.graph.n_edges, sr_classes=len(learner.graph.sr),
@@ -633,9 +636,9 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
 
 
 def learning_text(args, critic_loss: float) -> str:
-    """What the last cycle's SAC updates did, for the console: the critic loss, or that none ran (--n-updates 0;
-    with --freeze-normalizer as well, a fixed agent)."""
-    if not math.isnan(critic_loss):
+    """What the last cycle's SAC updates did, for the console: the critic loss (nan if it diverged), or that
+    none ran (--n-updates 0; with --freeze-normalizer as well, a fixed agent)."""
+    if args.n_updates > 0:
         return f"critic loss {critic_loss:.3f}"
     return "fixed agent: no SAC update, normalizer frozen" if args.freeze_normalizer else "no SAC update"
 
@@ -683,7 +686,7 @@ class Logger:
     def __init__(self, run_dir: Path, rows: list[dict], resumed: bool):
         from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (slow import, only when training)
 
-        self.path = run_dir / "progress.csv"
+        self.path, self.rows = run_dir / "progress.csv", rows  # rows: the run's, this epoch's appended before log
         if resumed:
             write_csv(self.path, rows)
         # TensorBoard hides the events of steps >= purge_step, then gets the last row again.
@@ -694,6 +697,10 @@ class Logger:
 
     def log(self, row: dict):
         new = not self.path.exists() or self.path.stat().st_size == 0
+        if not new and self.path.open(newline="").readline().rstrip("\r\n").split(",") != list(row):
+            write_csv(self.path, self.rows)  # a run resumed from an older version, whose rows have fewer columns
+            self.add_scalars(row)
+            return
         with self.path.open("a", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(row))
             if new:
@@ -726,13 +733,14 @@ def tensorboard_tag(column: str) -> str:
 
 
 def write_csv(path: Path, rows: list[dict]):
-    """progress.csv holding exactly these rows, written then renamed."""
+    """progress.csv holding exactly these rows, written then renamed. Its columns: every row's, in the order of
+    the newest (a run resumed from an older version's checkpoint has rows with fewer); a row without one: empty."""
     if not rows:  # stopped within the first epoch: no row yet, and no file (the next row writes the header)
         path.unlink(missing_ok=True)
         return
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w = csv.DictWriter(f, fieldnames=list(dict.fromkeys([k for r in rows[::-1] for k in r])), restval="")
         w.writeheader()
         w.writerows(rows)
     os.replace(tmp, path)
@@ -944,7 +952,8 @@ class RunFolder:
                     sys.exit(2)
                 config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
                 if args.init_from:  # which file (the paper's agent is not in the repository: its hash names it)
-                    config["init_from_sha256"] = hashlib.sha256(Path(args.init_from).read_bytes()).hexdigest()
+                    with open(args.init_from, "rb") as f:
+                        config["init_from_sha256"] = hashlib.file_digest(f, "sha256").hexdigest()
                 (self.dir / "config.json").write_text(json.dumps(config, indent=2))
         if init is not None:
             progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
@@ -989,7 +998,7 @@ class RunFolder:
             self.logger.log(row)
         self.saved_at = (run.epoch, run.cycle)
         per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
-        learned = "" if not math.isnan(row["critic_loss"]) else f"{learning_text(run.args, math.nan)} | "
+        learned = f"{learning_text(run.args, math.nan)} | " if run.args.n_updates == 0 else ""
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
                  f"{learned}"
                  f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",

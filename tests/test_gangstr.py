@@ -645,6 +645,8 @@ def test_agent_nodes_per_class_count_the_class_configs_in_the_agent_graph_not_th
     assert row["agent_nodes_S2"] == len(run.classes["S2"]) > row["encounters_S2"] == 1
     assert row["agent_nodes_C1"] == 0 and row["encounters_C1"] == 1
     assert plumbing.tensorboard_tag("agent_nodes_S2") == "graph/agent_nodes_S2"
+    assert plumbing.tensorboard_tag("sp_frontier_arrived_S2") == "sampler/sp_frontier_arrived_S2"
+    assert plumbing.tensorboard_tag("sp_beyond_reached_S2") == "sampler/sp_beyond_reached_S2"
 
 
 def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_while_the_graph_grows():
@@ -672,6 +674,7 @@ def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_w
         assert nets_after[opt]["state"] == nets[opt]["state"] == {}, opt
     assert math.isnan(run.tally["losses"]["critic_loss"])
     assert plumbing.learning_text(args, math.nan) == "fixed agent: no SAC update, normalizer frozen"
+    assert plumbing.learning_text(gh.Args(), math.nan) == "critic loss nan"  # updates ran and diverged: say so
 
 
 def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():
@@ -763,6 +766,21 @@ def test_resuming_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
         assert {k: v for k, v in ra.items() if not k.startswith(TIMING)} == {
             k: v for k, v in rb.items() if not k.startswith(TIMING)
         }
+
+
+def test_a_run_resumed_from_an_older_versions_checkpoint_logs_every_column_under_its_own_name(tmp_path):
+    assert run_script(*RESUME, "--n-epochs", "1", runs_dir=tmp_path).returncode == 0
+    (run,) = tmp_path.iterdir()
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    newer = [k for k in state["rows"][0] if k.startswith("agent_nodes_")]  # columns an older version did not log
+    state["rows"] = [{k: v for k, v in row.items() if k not in newer} for row in state["rows"]]
+    plumbing.save_checkpoint(state, run / "checkpoint.pt")
+    out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    old, new = read_rows(run)
+    assert all(old[k] == "" for k in newer) and all(new[k] != "" for k in newer)
+    assert {k: v for k, v in old.items() if k not in newer} == {k: str(v) for k, v in state["rows"][0].items()}
+    assert new["epoch"] == "1" and int(new["segments"]) == 2 * int(old["segments"])  # its own columns, aligned
 
 
 STOPPED = [*RESUME, "--sp-ratio", "0.3", "--n-cycles", "3", "--n-epochs", "6"]  # with the partner: more draws

@@ -277,7 +277,8 @@ def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset
     assert all(e == "reset" or e[1] == "stoch" for e in world.log)
     assert not run.sampler.internalization_buffer
     assert not any(k.startswith("sp_frontier") for k in run.sampler.stats)
-    assert sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond")) == 4
+    assert sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond_") and "reached" not in k) == 4
+    assert sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond_reached_")) == 3  # the third tries
 
 
 C01_BEYOND = [M(close=[(0, 1)], above=[(0, 1)]), M(close=[(0, 1)], above=[(1, 0)]), M(close=[(0, 1), (1, 2)]),
