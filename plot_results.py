@@ -104,6 +104,18 @@ def betainc(a: float, b: float, x: float) -> float:
     return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b
 
 
+def fisher_p(a: int, n_a: int, b: int, n_b: int) -> float:
+    """Two-sided p-value of Fisher's exact test that a of n_a and b of n_b are draws of one rate: the chance,
+    with the margins fixed, of a table no likelier than the one seen (hypergeometric, small counts)."""
+    k, n = a + b, n_a + n_b
+
+    def prob(x):
+        return math.comb(n_a, x) * math.comb(n_b, k - x) / math.comb(n, k)
+
+    seen = prob(a)
+    return min(1.0, sum(prob(x) for x in range(max(0, k - n_b), min(k, n_a) + 1) if prob(x) <= seen * (1 + 1e-9)))
+
+
 def welch_p(x: np.ndarray, y: np.ndarray) -> float:
     """Two-sided p-value of Welch's t-test for equal means (nan with fewer than 2 samples a side)."""
     if len(x) < 2 or len(y) < 2:
@@ -356,13 +368,23 @@ def discovery_tables(
 
     ref = reference if reference in conditions else next(iter(conditions))
     others = [c for c in conditions if c != ref]
-    out.append(f"\nDiscovered at epoch {n - 1}, mean +- std over seeds; Welch's t-test against {ref} (p):\n")
+    out.append(f"\nDiscovered at epoch {n - 1}, mean +- std over seeds (seeds with any); against {ref}: Welch's "
+               "t-test on the counts (undefined where no condition's seeds vary), Fisher's exact test on the seeds "
+               "with any (p):\n")  # fmt: skip
     rows = []
     for cls in names:
         final = {c: stack(runs, f"agent_nodes_{cls}")[:, n - 1] for c, runs in conditions.items()}
-        cells = [f"{final[c].mean():.1f} +- {final[c].std(ddof=1) if len(final[c]) > 1 else 0:.1f}" for c in conditions]
-        rows.append([f"{cls} (of {sizes[cls]})", *cells, *(f"{welch_p(final[c], final[ref]):.3g}" for c in others)])
-    out.append(md_table(["class", *conditions, *(f"p, {c}" for c in others)], rows))
+        cells = [f"{v.mean():.1f} +- {v.std(ddof=1) if len(v) > 1 else 0:.1f} ({(v > 0).sum()}/{len(v)})"
+                 for v in final.values()]  # fmt: skip
+        welch = [welch_p(final[c], final[ref]) if np.var(final[c]) + np.var(final[ref]) > 0 else math.nan
+                 for c in others]  # fmt: skip
+        fisher = [
+            fisher_p((final[c] > 0).sum(), len(final[c]), (final[ref] > 0).sum(), len(final[ref])) for c in others
+        ]
+        rows.append([f"{cls} (of {sizes[cls]})", *cells, *(f"{p:.3g}" if p == p else "undefined" for p in welch),
+                     *(f"{p:.3g}" for p in fisher)])  # fmt: skip
+    out.append(md_table(["class", *conditions, *(f"Welch p, {c}" for c in others), *(f"Fisher p, {c}" for c in others)],
+                        rows))  # fmt: skip
     return "\n".join(out)
 
 

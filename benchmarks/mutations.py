@@ -347,6 +347,8 @@ MUTATIONS = [
     Mutation("a reached beyond goal uncounted under --strategy beyond", G,
              '            if segment.success:\n                self.count("beyond_reached", beyond)\n',
              "            if segment.success:\n", f"{TH} -k beyond_strategy_retries"),
+    Mutation("Fisher's test leaves out tables as likely as the one seen", "plot_results.py",
+             "if prob(x) <= seen * (1 + 1e-9)", "if prob(x) < seen", "tests/test_plot_results.py -k fisher"),
     Mutation("an older run's resumed progress.csv keeps its old header", P,
              "            write_csv(self.path, self.rows)  # a run resumed", "            pass  # a run resumed",
              f"{TG} -k older_versions"),

@@ -206,9 +206,17 @@ def test_the_committed_discovery_runs_plot_and_tabulate_what_the_partner_opens(t
             found = [e for e, r in enumerate(csvs[run]) if int(r[f"agent_nodes_{cls}"]) > 0]
             assert cell == (str(found[0]) if found else "never"), (run.name, cls)
     final = markdown_table_after(text, "Discovered at epoch 9")
-    assert final[0] == ["class", *arms, "p, SP-0.2%", "p, SP-20%"]
+    assert final[0] == ["class", *arms, "Welch p, SP-0.2%", "Welch p, SP-20%", "Fisher p, SP-0.2%", "Fisher p, SP-20%"]
     for row in final[1:]:
         cls = row[0].split(" (of ")[0]
         for cell, folders in zip(row[1:4], arms.values(), strict=True):
             values = [int(csvs[run][-1][f"agent_nodes_{cls}"]) for run in folders]
             assert cell.startswith(f"{np.mean(values):.1f} +- "), (cls, cell)
+            assert cell.endswith(f" ({sum(v > 0 for v in values)}/2)"), (cls, cell)
+
+
+def test_fishers_exact_test_matches_the_hypergeometric_tables_of_known_cases():
+    assert pr.fisher_p(3, 4, 1, 4) == pytest.approx(34 / 70)  # the tea tasting: tables 3/1 and 1/3, 4/0 and 0/4
+    assert pr.fisher_p(5, 5, 0, 5) == pytest.approx(2 / 252)  # all against none: the two extreme tables
+    assert pr.fisher_p(0, 5, 5, 5) == pr.fisher_p(5, 5, 0, 5)
+    assert pr.fisher_p(2, 5, 2, 5) == pytest.approx(1.0) and pr.fisher_p(0, 3, 0, 3) == 1.0
