@@ -51,8 +51,8 @@ def test_every_script_imports_plumbing_and_keeps_its_main_short(script):
 
 def fake_run(cycle: int, seconds: float, steps: int, epoch: int, last_eval: float | None):
     """What cycle_progress reads of a run: 10 cycles of 10-step segments per epoch, 3 epochs."""
-    args = types.SimpleNamespace(n_cycles=10, n_epochs=3, segment_len=10)
-    tally = dict(collect=seconds / 4, update=3 * seconds / 4, env_steps_at_start=1000)
+    args = types.SimpleNamespace(n_cycles=10, n_epochs=3, segment_len=10, n_updates=30, freeze_normalizer=False)
+    tally = dict(collect=seconds / 4, update=3 * seconds / 4, env_steps_at_start=1000, losses=dict(critic_loss=0.25))
     rows = [] if last_eval is None else [dict(time_eval=last_eval)]
     learner = types.SimpleNamespace(segments=(1000 + steps) // 10)
     return types.SimpleNamespace(args=args, tally=tally, cycle=cycle, epoch=epoch, rows=rows, learner=learner)
@@ -64,7 +64,7 @@ def test_the_progress_line_shows_steps_per_second_and_the_time_left_in_the_epoch
     # evaluation (25 s) = 42 s.
     plumbing.cycle_progress(fake_run(cycle=4, seconds=8.0, steps=400, epoch=1, last_eval=5.0), "nodes 7")
     line = capsys.readouterr().out
-    assert "epoch 1 cycle 4/10 | nodes 7 | train 50 steps/s | left: epoch 0:17, run 0:42" in line
+    assert "epoch 1 cycle 4/10 | nodes 7 | critic loss 0.250 | train 50 steps/s | left: epoch 0:17, run 0:42" in line
     # Before any evaluation, the estimate counts the cycles alone: 12 s, then 2 x 20 s more.
     plumbing.cycle_progress(fake_run(cycle=4, seconds=8.0, steps=400, epoch=0, last_eval=None), "x")
     assert "left: epoch 0:12, run 0:52" in capsys.readouterr().out
