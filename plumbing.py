@@ -686,7 +686,7 @@ class Logger:
     def __init__(self, run_dir: Path, rows: list[dict], resumed: bool):
         from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (slow import, only when training)
 
-        self.path, self.rows = run_dir / "progress.csv", rows  # rows: the run's, this epoch's appended before log
+        self.path, self.rows = run_dir / "progress.csv", rows  # the run's rows (finish_epoch appends to them)
         if resumed:
             write_csv(self.path, rows)
         # TensorBoard hides the events of steps >= purge_step, then gets the last row again.
@@ -696,16 +696,9 @@ class Logger:
             self.add_scalars(rows[-1])
 
     def log(self, row: dict):
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        if not new and self.path.open(newline="").readline().rstrip("\r\n").split(",") != list(row):
-            write_csv(self.path, self.rows)  # a run resumed from an older version, whose rows have fewer columns
-            self.add_scalars(row)
-            return
-        with self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        """The epoch's row, already the last of `rows`: progress.csv rewritten whole (write_csv: every column
+        under its name, even after a resume from an older version whose rows have fewer), then TensorBoard."""
+        write_csv(self.path, self.rows)
         self.add_scalars(row)
 
     def add_scalars(self, row: dict):
