@@ -161,18 +161,22 @@ class MLP(nn.Module):
         self.large = large
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if update_products.dtype is None:  # acting (and a plain reference): torch's own products
+        if update_products.dtype is None:  # acting (and a plain reference): fp32
             x = F.linear(F.relu(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
             return F.relu(x) if self.out_relu else x
-        dtype = update_products.dtype if self.large else torch.float32
-        return dense(dense(x, self.hidden, True, dtype), self.out, self.out_relu, dtype)
+        dtype = update_products.dtype if self.large else torch.float32  # the update's, off the CPU (see fused)
+        w1, b1, w2, b2 = (p.to(dtype) for p in self.params())
+        x = F.linear(F.relu(F.linear(x.to(dtype), w1, b1)), w2, b2)
+        return F.relu(x) if self.out_relu else x
+
+    def params(self) -> tuple[torch.Tensor, ...]:
+        return self.hidden.weight, self.hidden.bias, self.out.weight, self.out.bias
 
 
-# --- the update's products: one switch (a speed trick; README "Speed", benchmarks/bench_update.py) ---
 @contextlib.contextmanager
 def update_products(dtype: torch.dtype):
-    """Within it, the networks compute as in a SAC update: every product by `dense`, the large nets' in
-    `dtype` (--precision). Outside it (acting), torch's F.linear: on one observation it is 2x faster."""
+    """Within it, the networks compute as in a SAC update: the large nets' products in `dtype` (--precision),
+    on the CPU by the fused nets below. Outside it (acting), torch's F.linear in fp32."""
     update_products.dtype = dtype
     try:
         yield
@@ -183,55 +187,117 @@ def update_products(dtype: torch.dtype):
 update_products.dtype = None
 
 
-def dense(x: torch.Tensor, layer: nn.Linear, relu: bool, dtype: torch.dtype) -> torch.Tensor:
-    """relu(x W^T + b) (or without the ReLU) for x (..., in), its products in `dtype` with fp32 sums;
-    the output in `dtype`. On CPU, oneDNN (OneDNNLinear); elsewhere, or compiled (--compile), torch's."""
-    if x.device.type == "cpu" and ONEDNN and not torch.compiler.is_compiling():
-        return OneDNNLinear.apply(x, layer.weight, layer.bias, relu, dtype)
-    y = F.linear(x.to(dtype), layer.weight.to(dtype), layer.bias.to(dtype))
-    return F.relu(y) if relu else y
+def node_sum(net: MLP, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """sum_i net([glob, local_i]) (B, out), in fp32 whatever the net's precision, for the graph-wide features
+    glob (B, .) and each node's own local (B, n, .): the node net's readout (SPEC §5)."""
+    if fused(local):
+        return NodeNet.apply(glob, local, *net.params(), update_products.dtype)
+    x = torch.cat([glob[:, None].expand(-1, local.shape[1], -1), local], dim=-1)  # node i: [glob, local_i]
+    return net(x).sum(1, dtype=torch.float32)
+
+
+def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, n, out): for node i, the max over its n - 1 outgoing edges (i, j) of net(edge input); edges
+    (B, E, .) ordered by i (GraphIndex). The message passing of SPEC §5."""
+    if fused(edges):
+        return EdgeMax.apply(edges, *net.params(), n, update_products.dtype)
+    m = net(edges)
+    return m.reshape(len(m), n, n - 1, m.shape[-1]).amax(dim=2)
+
+
+# --- fused nets: the update's large nets on the CPU, backward written out (a speed trick; README "Speed") ---
+def fused(x: torch.Tensor) -> bool:
+    """Inside an update on the CPU, not compiled: the message and node nets as NodeNet and EdgeMax. Each is one
+    autograd node whose products are oneDNN's, ReLUs fused into them or applied in place, with the input
+    gradients that are needed alone. Elsewhere (a GPU, --compile), the plain nets above and torch's autograd."""
+    return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
 
 
 ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
-class OneDNNLinear(torch.autograd.Function):
-    """A layer's three products (its output, the input's and the weight's gradients) by oneDNN, the ReLU
-    fused into the first. torch's own CPU products go to MKL, which on this project's AMD machine runs fp32
-    at under half oneDNN's rate; and a separate ReLU is one more pass over the largest tensors."""
+def product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
+    """x (rows, in) times w (out, in) transposed, + bias, ReLU if asked, summed in fp32: oneDNN's linear, which
+    applies the ReLU while the output is still in cache (torch's CPU product goes to MKL, slow on AMD)."""
+    if ONEDNN:
+        return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
+    y = F.linear(x, w, bias)
+    return y.relu_() if relu else y
+
+
+def weight_grad(g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """g^T x in fp32: the gradient of a layer's weight, for its output gradient g (rows, out) and input x
+    (rows, in). oneDNN copies a transposed first operand, so the narrower one goes first."""
+    w = product(g.t(), x.t()) if g.shape[1] <= x.shape[1] else product(x.t(), g.t()).t()
+    return w.float().contiguous()
+
+
+def relu_backward_(g: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """g zeroed in place where the ReLU's output y is 0."""
+    return torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
+
+
+class NodeNet(torch.autograd.Function):
+    """node_sum of one Linear -> ReLU -> Linear -> ReLU net. Its first product splits by input: the graph-wide
+    part once per sample (B rows), the nodes' own part per node (B x n rows), so glob is never copied to every
+    node, and the backward reaches glob through a sum over nodes."""
 
     @staticmethod
-    def forward(ctx, x, weight, bias, relu: bool, dtype):
-        x2 = x.reshape(-1, x.shape[-1]).to(dtype).contiguous()  # (rows, in)
-        w = weight.to(dtype)
-        y = onednn_product(x2, w, bias.to(dtype), relu)
-        ctx.save_for_backward(x2, w, y if relu else None)
-        ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
-        return y.view(*x.shape[:-1], len(w))
+    def forward(ctx, glob, local, w1, b1, w2, b2, dtype):
+        b, n, k = local.shape
+        w1 = w1.to(dtype)
+        w1g, w1l, w2 = w1[:, : glob.shape[1]].contiguous(), w1[:, glob.shape[1] :].contiguous(), w2.to(dtype)
+        x = local.reshape(b * n, k).to(dtype)
+        h = product(x, w1l, b1.to(dtype))  # (B n, hidden): the nodes' part, then + the graph-wide part, ReLU
+        h.view(b, n, -1).add_(product(glob.to(dtype), w1g)[:, None]).relu_()
+        y = product(h, w2, b2.to(dtype), relu=True)  # (B n, out)
+        ctx.save_for_backward(glob, x, h, y, w1g, w1l, w2)
+        ctx.n = n
+        return y.view(b, n, -1).sum(1, dtype=torch.float32)
 
     @staticmethod
     def backward(ctx, grad):
-        x2, w, y = ctx.saved_tensors
-        g = grad.to(w.dtype)
-        if y is not None:  # the ReLU's: zero where it output zero (on the gradient as it comes, often expanded)
-            g = torch.ops.aten.threshold_backward(g, y.view(g.shape), 0)
-        g = g.reshape(-1, len(w))  # (rows, out)
-        grad_x = grad_w = grad_b = None
-        if ctx.needs_input_grad[0]:
-            grad_x = onednn_product(g, w.t()).view(ctx.x_shape).to(ctx.x_dtype)
-        if ctx.needs_input_grad[1]:  # g^T x; oneDNN copies a transposed first operand: the narrower goes first
-            narrow_g = g.shape[1] <= x2.shape[1]
-            grad_w = onednn_product(g.t(), x2.t()) if narrow_g else onednn_product(x2.t(), g.t()).t()
-            grad_w = grad_w.float().contiguous()
-        if ctx.needs_input_grad[2]:
-            grad_b = g.sum(0, dtype=torch.float32)
-        return grad_x, grad_w, grad_b, None, None
+        glob, x, h, y, w1g, w1l, w2 = ctx.saved_tensors
+        need_glob, need_local, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
+        b, n = len(glob), ctx.n
+        g = grad.to(w2.dtype)[:, None].expand(b, n, -1)  # every node's output gets the sum's gradient
+        g = torch.ops.aten.threshold_backward(g, y.view(b, n, -1), 0).view(b * n, -1)  # (B n, out)
+        gh = relu_backward_(product(g, w2.t()), h)  # (B n, hidden)
+        g_glob = gh.view(b, n, -1).sum(1, dtype=torch.float32) if need_glob or need_w else None  # (B, hidden)
+        grads = [None] * 7
+        if need_glob:
+            grads[0] = g_glob @ w1g.float()
+        if need_local:
+            grads[1] = product(gh, w1l.t()).view(b, n, -1).float()
+        if need_w:
+            grads[2] = torch.cat([g_glob.t() @ glob.float(), weight_grad(gh, x)], dim=1)
+            grads[3:6] = gh.sum(0, dtype=torch.float32), weight_grad(g, h), g.sum(0, dtype=torch.float32)
+        return tuple(grads)
 
 
-def onednn_product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
-    """x (rows, in) times w (out, in) transposed, + bias, then the ReLU if asked: oneDNN's linear, whose
-    ReLU runs on the product's output while it is still in cache."""
-    return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
+class EdgeMax(torch.autograd.Function):
+    """edge_max of one Linear -> ReLU -> Linear -> ReLU net. The max's gradient goes to the edge that gave it
+    (shared among exact ties, as torch's amax does), where the ReLU let it through."""
+
+    @staticmethod
+    def forward(ctx, edges, w1, b1, w2, b2, n, dtype):
+        x = edges.reshape(-1, edges.shape[-1]).to(dtype)
+        w2 = w2.to(dtype)
+        h = product(x, w1.to(dtype), b1.to(dtype), relu=True)  # (B E, hidden)
+        y = product(h, w2, b2.to(dtype), relu=True).view(len(edges), n, n - 1, -1)
+        out = y.amax(dim=2)
+        ctx.save_for_backward(x, h, y, out, w2)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, y, out, w2 = ctx.saved_tensors
+        hit = (y == out[:, :, None]) & (y > 0)
+        g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)
+        g = g.view(-1, y.shape[-1])  # (B E, out)
+        gh = relu_backward_(product(g, w2.t()), h)
+        grad_b1, grad_b2 = gh.sum(0, dtype=torch.float32), g.sum(0, dtype=torch.float32)
+        return None, weight_grad(gh, x), grad_b1, weight_grad(g, h), grad_b2, None, None
 
 
 def weight_view(module: nn.Module) -> nn.Module:
@@ -253,14 +319,6 @@ def init_weights(module: nn.Module):
         if isinstance(m, nn.Linear):
             nn.init.xavier_uniform_(m.weight)
             nn.init.zeros_(m.bias)
-
-
-def node_inputs(glob: list[torch.Tensor], local: list[torch.Tensor]) -> torch.Tensor:
-    """(B, n, .) node inputs [glob, local_i]: the graph-wide features `glob` (B, .) go to every node,
-    next to the node's own features `local` (B, n, .); one concatenation of the parts. A node net
-    then reads them out as node(inputs).sum(1)."""
-    n = local[0].shape[1]
-    return torch.cat([g[:, None].expand(-1, n, -1) for g in glob] + local, dim=-1)
 
 
 class GraphIndex:
@@ -303,15 +361,14 @@ class Critic(nn.Module):
         the edge messages."""
         b = len(blocks)
         features = torch.cat([gap, blocks.reshape(b, -1)], dim=1)
-        m = self.message(features[:, gi.edge_index].reshape(b, -1, 8))  # (B, E, 8) -> (B, E, 24)
-        return m.reshape(len(m), gi.n, gi.n - 1, MSG).amax(dim=2)
+        return edge_max(self.message, features[:, gi.edge_index].reshape(b, -1, 8), gi.n)  # edge inputs (B, E, 8)
 
     def q(self, body, blocks, action, msg):
         """Twin Q values; node input [action, body, block i, message i] (built once for both twins),
         summed over nodes (in fp32, whatever the node nets' precision: the heads and Q values stay fp32)."""
-        x = node_inputs([action, body], [blocks, msg])
+        glob, local = torch.cat([action, body], dim=1), torch.cat([blocks, msg], dim=2)
         heads = zip(self.q_nodes, self.q_heads, strict=True)
-        return [head(node(x).sum(1, dtype=torch.float32)).squeeze(-1) for node, head in heads]
+        return [head(node_sum(node, glob, local)).squeeze(-1) for node, head in heads]
 
 
 class Actor(nn.Module):
@@ -328,7 +385,7 @@ class Actor(nn.Module):
     def forward(self, body, blocks, msg):
         """Node input [body, block i, message i], summed over nodes (in fp32, as the critic's), then the
         Gaussian head."""
-        nodes = self.node(node_inputs([body], [blocks, msg])).sum(1, dtype=torch.float32)
+        nodes = node_sum(self.node, body, torch.cat([blocks, msg], dim=2))
         mean, log_std = self.head(nodes).chunk(2, dim=-1)
         return mean, log_std.clamp(-20, 2)
 

@@ -190,6 +190,22 @@ def fast_bf16(cuda: bool) -> bool:
     return torch.backends.mkldnn.is_available() and has_bf16
 
 
+def cpu_line() -> str:
+    """This CPU and its matrix instructions, on the first line of every speed benchmark: each figure names its
+    machine (README "Speed"). A vague model name ('AMD EPYC' in a VM) gets its family and model numbers."""
+    caps = torch.cpu.get_capabilities()
+    info = Path("/proc/cpuinfo").read_text().split("\n\n")[0] if os.path.exists("/proc/cpuinfo") else ""
+    fields = dict(line.split(":", 1) for line in info.splitlines() if ":" in line)
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    name = caps.get("cpu_name") or fields.get("model name") or "unknown CPU"
+    if "cpu family" in fields:
+        name += f" (family {fields['cpu family']}, model {fields.get('model', '?')})"
+    isa = [f"{label} {'yes' if caps.get(key) else 'no'}" for label, key in
+           (("AMX", "amx_bf16"), ("AVX512-BF16", "avx512_bf16"), ("AVX512", "avx512_f"), ("AVX2", "avx2"))]  # fmt: skip
+    bf16 = fast_bf16(cuda=False)
+    return f"CPU: {name}, {os.cpu_count()} CPUs; {', '.join(isa)}; fast bf16: {bf16}; torch {torch.__version__}"
+
+
 def check_run_control(a) -> str | None:
     """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
     need."""

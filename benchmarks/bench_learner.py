@@ -103,6 +103,7 @@ def main():
     parser.add_argument("--n-blocks", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()
+    print(plumbing.cpu_line())
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     n = args.n_blocks

@@ -14,6 +14,7 @@ physics (the envs' steps), planning and graph updates, SAC updates (each over 24
 the rest (the workers' programs, segment bookkeeping, replay stores, normalizer); with --cuda, the peak GPU memory.
 
     python benchmarks/bench_scaling.py [--n-cycles 10] [--repeats 3] [--n-blocks 5] [--cycles-24 2] [--cuda]
+                                       [--precision bf16]
 """
 
 import argparse
@@ -37,7 +38,7 @@ def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
     with tempfile.TemporaryDirectory() as runs:
         cmd = [*launcher, "gangstr_hme.py", "--n-blocks", str(args.n_blocks), "--n-epochs", "1",
                "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "1", "--no-save-buffer",
-               "--runs-dir", runs, *flags]  # fmt: skip
+               "--runs-dir", runs, "--precision", args.precision, *flags]  # fmt: skip
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True)
         (progress,) = Path(runs).glob("*/progress.csv")
         with progress.open() as f:
@@ -58,7 +59,7 @@ def timed(seconds: dict, key: str, fn):
 
 def cycle_profile(args) -> tuple[float, dict]:
     """Seconds per cycle of --num-envs 24 in this process, and their split."""
-    cfg = gh.Args(n_blocks=args.n_blocks, num_envs=24, sp_ratio=0.2, cuda=args.cuda, seed=0)
+    cfg = gh.Args(n_blocks=args.n_blocks, num_envs=24, sp_ratio=0.2, cuda=args.cuda, seed=0, precision=args.precision)
     torch.manual_seed(0)
     run = gh.Run(cfg, plumbing.init_workers(cfg))
     learner = run.learner
@@ -95,7 +96,9 @@ def main():
     parser.add_argument("--cuda", action="store_true", help="the 24-worker learner on the GPU")
     parser.add_argument("--skip-scaling", action="store_true", help="only the 24-worker cycle")
     parser.add_argument("--skip-24", action="store_true", help="only the 1- and 2-worker conditions")
+    parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"], help="the SAC update's (README)")
     args = parser.parse_args()
+    print(plumbing.cpu_line())
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
     conditions = {
         "1 process, 1 worker": ([sys.executable], ["--num-envs", "1"]),

@@ -23,7 +23,6 @@ observations.
 import argparse
 import importlib.util
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -173,8 +172,9 @@ def products_of_update(mod, data: dict) -> tuple[int, list[tuple[int, int, int]]
     return counter.get_total_flops(), shapes
 
 
-def product_times(shapes, threads: int, repeats: int = 20) -> dict:
-    """Per distinct shape, ms of one product: torch's fp32 (MKL on CPU), oneDNN's fp32 and bf16."""
+def product_times(shapes, threads: int, bf16: bool, repeats: int = 20) -> dict:
+    """Per distinct shape, ms of one product: torch's fp32 (MKL on CPU), oneDNN's fp32 and, where the CPU has
+    bf16 instructions (`bf16`: without them oneDNN has no bf16 product), oneDNN's bf16."""
     torch.set_num_threads(threads)
     onednn = torch.ops.mkldnn._linear_pointwise
     out = {}
@@ -184,8 +184,9 @@ def product_times(shapes, threads: int, repeats: int = 20) -> dict:
         out[m, k, n] = dict(torch_fp32=min(median_ms(lambda a=a, w=w: a @ w.T, repeats) for _ in range(3)),
                             onednn_fp32=min(median_ms(lambda a=a, w=w: onednn(a, w, None, "none", [], ""), repeats)
                                             for _ in range(3)),
-                            onednn_bf16=min(median_ms(lambda a=ab, w=wb: onednn(a, w, None, "none", [], ""), repeats)
-                                            for _ in range(3)))  # fmt: skip
+                            **({} if not bf16 else dict(onednn_bf16=min(
+                                median_ms(lambda a=ab, w=wb: onednn(a, w, None, "none", [], ""), repeats)
+                                for _ in range(3)))))  # fmt: skip
     return out
 
 
@@ -194,6 +195,8 @@ def floors(shapes, times: dict) -> dict:
     them (the products over every edge or node, batch x nodes or batch x edges rows, in bf16; the heads fp32)."""
     large_rows = {BATCH * N_BLOCKS, BATCH * N_BLOCKS * (N_BLOCKS - 1)}
     fp32 = [min(times[s]["torch_fp32"], times[s]["onednn_fp32"]) for s in shapes]
+    if "onednn_bf16" not in times[shapes[0]]:
+        return dict(fp32=sum(fp32))
     bf16 = [times[s]["onednn_bf16"] if large_rows & set(s) else f for s, f in zip(shapes, fp32, strict=True)]
     return dict(fp32=sum(fp32), bf16=sum(bf16))
 
@@ -312,7 +315,9 @@ def main():
         return worker(ns)
     import plumbing  # noqa: PLC0415
 
-    print(f"{os.cpu_count()} CPUs, torch {torch.__version__}; fast bf16 here: {plumbing.fast_bf16(cuda=False)}")
+    print(plumbing.cpu_line())
+    bf16 = plumbing.fast_bf16(cuda=False)  # without bf16 instructions, --precision bf16 is refused: fp32 alone
+    precisions = ("fp32", "bf16") if bf16 else ("fp32",)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         now = load("now", folder)
@@ -321,7 +326,7 @@ def main():
         make_data(now, folder / "data.pt", n_batches=16)
         flops, shapes = products_of_update(load("before", folder), torch.load(folder / "data.pt", weights_only=False))
         print(f"\nOne update (5 blocks, batch {BATCH}): {flops / 1e9:.2f} GFLOP in {len(shapes)} products")
-        times = {t: product_times(shapes, t) for t in (1, 2)}
+        times = {t: product_times(shapes, t, bf16) for t in (1, 2)}
         print("Product rates, GFLOP/s (at the update's shapes, M x K x N; torch's fp32 is MKL here)")
         print(
             f"  {'shape':<18} {'count':>5}"
@@ -332,7 +337,7 @@ def main():
             print(f"  {'x'.join(map(str, s)):<18} {shapes.count(s):>5}" + "".join(f" {r:15.0f}" for r in rates))
         floor = {t: floors(shapes, times[t]) for t in (1, 2)}
 
-        conditions = [("before", "fp32"), ("now-default-heap", "fp32"), ("now", "fp32"), ("now", "bf16")]
+        conditions = [("before", "fp32"), ("now-default-heap", "fp32")] + [("now", p) for p in precisions]
         got = {c: [] for c in conditions}
         for r in range(ns.rounds):
             for c in conditions if r % 2 == 0 else conditions[::-1]:
@@ -348,13 +353,13 @@ def main():
                 fl = floor[t][c[1]]
                 print(f"  {t} thread(s) {c[0]:>16} {c[1]}: {ms:6.1f} ms ({min(spread):.1f}-{max(spread):.1f})  "
                       f"{BEFORE}/this {base / ms:4.2f}x   floor {fl:5.1f} ms, {ms / fl:4.2f}x it")  # fmt: skip
-        for precision in ("fp32", "bf16"):
+        for precision in precisions:
             profile(now, torch.load(folder / "data.pt", weights_only=False), precision)
         print("Single-observation action, 1 thread, ms: " + ", ".join(
             f"{c[0]} {c[1]} {med[c]['act']:.3f}" for c in conditions))  # fmt: skip
 
         if not ns.skip_cycles:
-            conditions = [("before", "fp32"), ("now", "fp32"), ("now", "bf16")]
+            conditions = [("before", "fp32")] + [("now", p) for p in precisions]
             cycles = {c: [] for c in conditions}
             for r in range(ns.rounds):
                 for c in conditions if r % 2 == 0 else conditions[::-1]:
