@@ -12,7 +12,8 @@ own: its Args class (the command line and checkpoints read its fields and docstr
 agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments and
 plan_seconds. Arrows run one way: scripts -> plumbing -> fetch5_env, oracle_graph.
 
-Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
+Sections: command line; processes (SPEC §11); the SAC update's CPU kernels (the scripts' message and node
+nets, backward written out: a speed trick); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
 folder and the top level's steps (parse_command_line, job, RunFolder, evaluate_checkpoint, run_main).
 """
@@ -45,6 +46,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn as nn
+import torch.nn.functional as F
 
 import fetch5_env
 import oracle_graph as og
@@ -342,6 +344,114 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
 def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
     """Counts of this process's workers (a goal sampler's stats), summed over every process."""
     return dict(zip(keys, all_sum(np.array([counts[k] for k in keys], dtype=np.float64)), strict=True))
+
+
+# ------------------------------------------------------------------------------------------------
+# The SAC update's CPU kernels (a speed trick; README "Speed"): the message and node nets of the
+# training scripts, the same math, each one autograd node with its backward written out. Products by
+# oneDNN, ReLUs fused into them or applied in place, only the gradients that are needed.
+# ------------------------------------------------------------------------------------------------
+ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+def product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
+    """x (rows, in) times w (out, in) transposed, + bias, ReLU if asked, summed in fp32: oneDNN's linear, which
+    applies the ReLU while the output is still in cache (torch's CPU product goes to MKL, slow on AMD)."""
+    if ONEDNN:
+        return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
+    y = F.linear(x, w, bias)
+    return y.relu_() if relu else y
+
+
+def weight_grad(g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """g^T x in fp32: the gradient of a layer's weight, for its output gradient g (rows, out) and input x
+    (rows, in). oneDNN copies a transposed first operand, so the narrower one goes first."""
+    w = product(g.t(), x.t()) if g.shape[1] <= x.shape[1] else product(x.t(), g.t()).t()
+    return w.float().contiguous()
+
+
+def bias_grad(g: torch.Tensor) -> torch.Tensor:
+    return g.sum(0, dtype=torch.float32)
+
+
+def relu_backward_(g: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """g zeroed in place where the ReLU's output y is 0."""
+    return torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
+
+
+class NodeNet(torch.autograd.Function):
+    """The scripts' node_sum of one Linear -> ReLU -> Linear -> ReLU net. Its backward skips the samples whose
+    gradient is zero: in the actor loss, min(Q1, Q2) sends each sample's gradient to one twin, so each twin
+    back-propagates about half the batch."""
+
+    @staticmethod
+    def forward(ctx, glob, local, w1, b1, w2, b2, dtype):
+        b, n, _ = local.shape
+        x = torch.cat([glob[:, None].expand(-1, n, -1), local], dim=-1).view(b * n, -1).to(dtype)  # [glob, local_i]
+        w1, w2 = w1.to(dtype), w2.to(dtype)
+        h = product(x, w1, b1.to(dtype), relu=True)  # (B n, hidden)
+        y = product(h, w2, b2.to(dtype), relu=True)  # (B n, out)
+        ctx.save_for_backward(x, h, y, w1, w2)
+        ctx.shape = b, n, glob.shape[1]
+        return y.view(b, n, -1).sum(1, dtype=torch.float32)
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, y, w1, w2 = ctx.saved_tensors
+        (b, n, k), need = ctx.shape, ctx.needs_input_grad
+        rows = None if need[2] else grad.any(1).nonzero()[:, 0]  # without weight gradients: live samples alone
+        if rows is not None:
+            grad, h, y = grad[rows], *(t.view(b, n, -1)[rows].flatten(0, 1) for t in (h, y))
+        m, hidden, out = len(grad), len(w1), len(w2)  # (sizes spelled out: m may be 0)
+        g = grad.to(w2.dtype)[:, None].expand(m, n, out)  # every node's output gets the sum's gradient
+        g = torch.ops.aten.threshold_backward(g, y.view(m, n, out), 0).view(m * n, out)
+        gh = relu_backward_(product(g, w2.t()), h)  # (B n, hidden)
+        grads = [None] * 7
+        if need[0]:
+            grads[0] = gh.view(m, n, hidden).sum(1, dtype=torch.float32) @ w1[:, :k].float()
+        if need[1]:
+            grads[1] = product(gh, w1[:, k:].t().contiguous()).view(m, n, len(w1[0]) - k).float()
+        if rows is not None:  # zeros for the samples without gradient
+            grads[:2] = [t if t is None else t.new_zeros(b, *t.shape[1:]).index_copy_(0, rows, t) for t in grads[:2]]
+        if need[2]:
+            grads[2:6] = weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g)
+        return tuple(grads)
+
+
+def edge_max(edges, w1, b1, w2, b2, n: int, dtype):
+    """The scripts' edge_max of one Linear -> ReLU -> Linear -> ReLU net. Without gradients (the TD target's),
+    in chunks of 64 samples, so that each chunk's hidden layer is still in cache for its second product."""
+    if torch.is_grad_enabled() and w1.requires_grad:
+        return EdgeMax.apply(edges, w1, b1, w2, b2, n, dtype)
+    return torch.cat([edge_nets(e, w1, b1, w2, b2, n, dtype)[3] for e in edges.split(64)])
+
+
+def edge_nets(edges, w1, b1, w2, b2, n: int, dtype):
+    """The net on every edge (B, E, in), and its max over each node's n - 1 edges: (x, h, y, max)."""
+    x = edges.reshape(-1, edges.shape[-1]).to(dtype)
+    h = product(x, w1.to(dtype), b1.to(dtype), relu=True)  # (B E, hidden)
+    y = product(h, w2.to(dtype), b2.to(dtype), relu=True).view(len(edges), n, n - 1, -1)
+    return x, h, y, y.amax(dim=2)
+
+
+class EdgeMax(torch.autograd.Function):
+    """edge_max with gradients. The max's gradient goes to the edge that gave it (shared among exact ties, as
+    torch's amax does), where the ReLU let it through."""
+
+    @staticmethod
+    def forward(ctx, edges, w1, b1, w2, b2, n, dtype):
+        x, h, y, out = edge_nets(edges, w1, b1, w2, b2, n, dtype)
+        ctx.save_for_backward(x, h, y, out, w2.to(dtype))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, y, out, w2 = ctx.saved_tensors
+        hit = (y == out[:, :, None]) & (y > 0)
+        g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)
+        g = g.view(-1, y.shape[-1])  # (B E, out)
+        gh = relu_backward_(product(g, w2.t()), h)
+        return None, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g), None, None
 
 
 # ------------------------------------------------------------------------------------------------

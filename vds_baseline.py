@@ -193,7 +193,7 @@ def node_sum(net: MLP, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
     """sum_i net([glob, local_i]) (B, out), in fp32 whatever the net's precision, for the graph-wide features
     glob (B, .) and each node's own local (B, n, .): the node net's readout (SPEC §5)."""
     if fused(local):
-        return NodeNet.apply(glob, local, *net.params(), update_products.dtype)
+        return plumbing.NodeNet.apply(glob, local, *net.params(), update_products.dtype)
     x = torch.cat([glob[:, None].expand(-1, local.shape[1], -1), local], dim=-1)  # node i: [glob, local_i]
     return net(x).sum(1, dtype=torch.float32)
 
@@ -202,104 +202,16 @@ def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
     """(B, n, out): for node i, the max over its n - 1 outgoing edges (i, j) of net(edge input); edges
     (B, E, .) ordered by i (GraphIndex). The message passing of SPEC §5."""
     if fused(edges):
-        return EdgeMax.apply(edges, *net.params(), n, update_products.dtype)
+        return plumbing.edge_max(edges, *net.params(), n, update_products.dtype)
     m = net(edges)
     return m.reshape(len(m), n, n - 1, m.shape[-1]).amax(dim=2)
 
 
-# --- fused nets: the update's large nets on the CPU, backward written out (a speed trick; README "Speed") ---
 def fused(x: torch.Tensor) -> bool:
-    """Inside an update on the CPU, not compiled: the message and node nets as NodeNet and EdgeMax. Each is one
-    autograd node whose products are oneDNN's, ReLUs fused into them or applied in place, with the input
-    gradients that are needed alone. Elsewhere (a GPU, --compile), the plain nets above and torch's autograd."""
+    """Inside an update on the CPU, not compiled: the message and node nets as plumbing's NodeNet and edge_max,
+    the same math with its backward written out (a speed trick, README "Speed"; tests/test_update.py holds them
+    to this file's plain nets). Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
     return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
-
-
-ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-
-
-def product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
-    """x (rows, in) times w (out, in) transposed, + bias, ReLU if asked, summed in fp32: oneDNN's linear, which
-    applies the ReLU while the output is still in cache (torch's CPU product goes to MKL, slow on AMD)."""
-    if ONEDNN:
-        return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
-    y = F.linear(x, w, bias)
-    return y.relu_() if relu else y
-
-
-def weight_grad(g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """g^T x in fp32: the gradient of a layer's weight, for its output gradient g (rows, out) and input x
-    (rows, in). oneDNN copies a transposed first operand, so the narrower one goes first."""
-    w = product(g.t(), x.t()) if g.shape[1] <= x.shape[1] else product(x.t(), g.t()).t()
-    return w.float().contiguous()
-
-
-def relu_backward_(g: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """g zeroed in place where the ReLU's output y is 0."""
-    return torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
-
-
-class NodeNet(torch.autograd.Function):
-    """node_sum of one Linear -> ReLU -> Linear -> ReLU net. Its first product splits by input: the graph-wide
-    part once per sample (B rows), the nodes' own part per node (B x n rows), so glob is never copied to every
-    node, and the backward reaches glob through a sum over nodes."""
-
-    @staticmethod
-    def forward(ctx, glob, local, w1, b1, w2, b2, dtype):
-        b, n, k = local.shape
-        w1 = w1.to(dtype)
-        w1g, w1l, w2 = w1[:, : glob.shape[1]].contiguous(), w1[:, glob.shape[1] :].contiguous(), w2.to(dtype)
-        x = local.reshape(b * n, k).to(dtype)
-        h = product(x, w1l, b1.to(dtype))  # (B n, hidden): the nodes' part, then + the graph-wide part, ReLU
-        h.view(b, n, -1).add_(product(glob.to(dtype), w1g)[:, None]).relu_()
-        y = product(h, w2, b2.to(dtype), relu=True)  # (B n, out)
-        ctx.save_for_backward(glob, x, h, y, w1g, w1l, w2)
-        ctx.n = n
-        return y.view(b, n, -1).sum(1, dtype=torch.float32)
-
-    @staticmethod
-    def backward(ctx, grad):
-        glob, x, h, y, w1g, w1l, w2 = ctx.saved_tensors
-        need_glob, need_local, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
-        b, n = len(glob), ctx.n
-        g = grad.to(w2.dtype)[:, None].expand(b, n, -1)  # every node's output gets the sum's gradient
-        g = torch.ops.aten.threshold_backward(g, y.view(b, n, -1), 0).view(b * n, -1)  # (B n, out)
-        gh = relu_backward_(product(g, w2.t()), h)  # (B n, hidden)
-        g_glob = gh.view(b, n, -1).sum(1, dtype=torch.float32) if need_glob or need_w else None  # (B, hidden)
-        grads = [None] * 7
-        if need_glob:
-            grads[0] = g_glob @ w1g.float()
-        if need_local:
-            grads[1] = product(gh, w1l.t()).view(b, n, -1).float()
-        if need_w:
-            grads[2] = torch.cat([g_glob.t() @ glob.float(), weight_grad(gh, x)], dim=1)
-            grads[3:6] = gh.sum(0, dtype=torch.float32), weight_grad(g, h), g.sum(0, dtype=torch.float32)
-        return tuple(grads)
-
-
-class EdgeMax(torch.autograd.Function):
-    """edge_max of one Linear -> ReLU -> Linear -> ReLU net. The max's gradient goes to the edge that gave it
-    (shared among exact ties, as torch's amax does), where the ReLU let it through."""
-
-    @staticmethod
-    def forward(ctx, edges, w1, b1, w2, b2, n, dtype):
-        x = edges.reshape(-1, edges.shape[-1]).to(dtype)
-        w2 = w2.to(dtype)
-        h = product(x, w1.to(dtype), b1.to(dtype), relu=True)  # (B E, hidden)
-        y = product(h, w2, b2.to(dtype), relu=True).view(len(edges), n, n - 1, -1)
-        out = y.amax(dim=2)
-        ctx.save_for_backward(x, h, y, out, w2)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, h, y, out, w2 = ctx.saved_tensors
-        hit = (y == out[:, :, None]) & (y > 0)
-        g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)
-        g = g.view(-1, y.shape[-1])  # (B E, out)
-        gh = relu_backward_(product(g, w2.t()), h)
-        grad_b1, grad_b2 = gh.sum(0, dtype=torch.float32), g.sum(0, dtype=torch.float32)
-        return None, weight_grad(gh, x), grad_b1, weight_grad(g, h), grad_b2, None, None
 
 
 def weight_view(module: nn.Module) -> nn.Module:

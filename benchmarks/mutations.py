@@ -53,6 +53,24 @@ TGPU = "tests/test_gpu.py"
 
 # fmt: off
 MUTATIONS = [
+    # --- issue 34: the update's CPU kernels --------------------------------------------------------------
+    Mutation("kernels: the max's gradient through edges the ReLU zeroed", P,
+             "hit = (y == out[:, :, None]) & (y > 0)", "hit = y == out[:, :, None]",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
+    Mutation("kernels: live samples' gradients put back in the wrong rows", P,
+             "index_copy_(0, rows, t)", "index_copy_(0, rows.flip(0), t)",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
+    Mutation("kernels: the TD target's message chunks out of order", P,
+             "for e in edges.split(64)])", "for e in edges.split(64)][::-1])",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
+    Mutation("kernels: the graph-wide inputs' gradient from the wrong weight columns", P,
+             "@ w1[:, :k].float()", "@ w1[:, 1 : k + 1].float()",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
+    Mutation("kernels: the message net's backward with its fp32 weight", P,
+             "ctx.save_for_backward(x, h, y, out, w2.to(dtype))", "ctx.save_for_backward(x, h, y, out, w2)",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_in_bf16'"),
+    Mutation("cpu_line: AMX read from the AVX512-BF16 flag", P,
+             '(("AMX", "amx_bf16"),', '(("AMX", "avx512_bf16"),', "tests/test_update.py -k cpu_line"),
     # --- issue 26: the mutations the suite used to miss ------------------------------------------------
     Mutation("paper layers: mean and log-std heads swapped", P,
              'mean_linear", "actor", "head.out"),\n    ("rho_actor.log_std_linear',

@@ -172,3 +172,65 @@ def test_a_bf16_checkpoint_resumed_where_bf16_is_slow_is_refused_unless_fp32_is_
 def test_fast_bf16_on_cpu_means_amx_or_avx512_bf16(monkeypatch, flags, fast):
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: flags)
     assert plumbing.fast_bf16(cuda=False) == (fast and torch.backends.mkldnn.is_available())
+
+
+# --- the update's CPU kernels (plumbing.NodeNet, plumbing.EdgeMax) against the plain nets ---------------------
+def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
+    """A node net's readout and a message net's max over edges, forward and every gradient, by the CPU kernels
+    (fused) or the plain nets and torch's autograd. The node readout as the actor loss uses it (weights fixed,
+    gradients to the action alone, zero for a third of the samples, as min(Q1, Q2) leaves them) and as the
+    critic loss does (weights and messages); the messages with gradients and without (the TD target's, in
+    chunks: 70 samples, not a multiple of the chunk)."""
+    monkeypatch.setattr(gh, "fused", lambda x: fused)
+    torch.manual_seed(seed)
+    b, n = 70, N_BLOCKS
+    node, message = gh.MLP(4 + 10 + 15 + 24, 256, 159, large=True), gh.MLP(8, 256, 24, large=True)
+    glob, local, edges = torch.randn(b, 14, requires_grad=True), torch.randn(b, n, 39), torch.randn(b, n * (n - 1), 8)
+    local.requires_grad_()
+    weights = list(node.parameters()) + list(message.parameters())
+    out = {}
+    with gh.update_products(dtype):
+        live = torch.rand(b, 1) < 0.67  # the samples whose twin was the min
+        fixed = gh.weight_view(node)  # the actor loss reads the critic's weights as constants
+        (gh.node_sum(fixed, glob, local.detach()) * live * torch.randn(b, 159)).sum().backward()
+        out["actor loss: action"] = glob.grad.clone()
+        glob.grad = None
+        readout = gh.node_sum(node, glob.detach(), local)
+        msg = gh.edge_max(message, edges, n)
+        (readout * torch.randn(b, 159)).sum().backward()
+        (msg.float() * torch.randn(b, n, 24)).sum().backward()
+        with torch.no_grad():
+            out["target messages"] = gh.edge_max(message, edges, n).float()
+    out |= {"readout": readout.detach(), "messages": msg.detach().float(), "local": local.grad}
+    out |= {f"weight {i}": p.grad for i, p in enumerate(weights)}
+    return out
+
+
+def test_the_cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32(monkeypatch):
+    fused, plain = (nets_and_grads(f, torch.float32, monkeypatch) for f in (True, False))
+    assert fused.keys() == plain.keys()
+    worst = max(plain, key=lambda k: relative(fused[k], plain[k]))
+    assert relative(fused[worst], plain[worst]) < 1e-5, worst
+    assert (fused["actor loss: action"] != 0).any(1).float().mean() < 0.8  # the dead samples' rows stay zero
+
+
+def test_the_cpu_kernels_compute_the_plain_nets_in_bf16_on_any_cpu(monkeypatch):
+    """torch's bf16 products in place of oneDNN's (which need bf16 instructions): the kernels' bf16 casts and
+    fp32 sums, checked where --precision bf16 itself is refused."""
+    monkeypatch.setattr(plumbing, "ONEDNN", False)
+    fused, plain = (nets_and_grads(f, torch.bfloat16, monkeypatch) for f in (True, False))
+    assert fused["readout"].dtype == torch.float32 and all(g.dtype == torch.float32 for k, g in fused.items())
+    assert max(relative(fused[k], plain[k]) for k in plain) < BF16_BOUNDS["gradients"]
+    fp32 = nets_and_grads(True, torch.float32, monkeypatch)
+    assert max(relative(fused[k], fp32[k]) for k in fp32) < BF16_BOUNDS["gradients"]
+
+
+def test_cpu_line_names_the_cpu_and_its_matrix_instructions(monkeypatch):
+    caps = {"cpu_name": "Some Xeon", "amx_bf16": True, "avx512_bf16": False, "avx512_f": True, "avx2": True}
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: caps)
+    line = plumbing.cpu_line()
+    assert line.startswith("CPU: Some Xeon") and "AMX yes, AVX512-BF16 no, AVX512 yes, AVX2 yes" in line
+    caps.update(amx_bf16=False, avx512_bf16=True, avx512_f=False)
+    assert "AMX no, AVX512-BF16 yes, AVX512 no, AVX2 yes" in plumbing.cpu_line()
+    caps.update(avx512_bf16=False)
+    assert "fast bf16: False" in plumbing.cpu_line()
