@@ -54,6 +54,10 @@ TGPU = "tests/test_gpu.py"
 # fmt: off
 MUTATIONS = [
     # --- issue 34: the update's CPU kernels --------------------------------------------------------------
+    Mutation("kernels: live samples cut at a multiple of 32 (some left out)", P,
+             "k = min(len(grad), -(-int(live.sum()) // multiple) * multiple)",
+             "k = min(len(grad), int(live.sum()) // multiple * multiple)",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
     Mutation("kernels: the max's gradient through edges the ReLU zeroed", P,
              "hit = (y == out[:, :, None]) & (y > 0)", "hit = y == out[:, :, None]",
              "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
