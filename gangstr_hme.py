@@ -216,16 +216,16 @@ def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
     """(B, n, out): for node i, the max over its n - 1 outgoing edges (i, j) of net(edge input); edges
     (B, E, .) ordered by i (GraphIndex). The message passing of SPEC §5."""
     if fused(edges):
-        return plumbing.edge_max(edges, *net.params(), n, update_products.dtype)
+        return plumbing.fused_edge_max(edges, *net.params(), n, update_products.dtype)
     m = net(edges)
     return m.reshape(len(m), n, n - 1, m.shape[-1]).amax(dim=2)
 
 
 def fused(x: torch.Tensor) -> bool:
-    """Inside an update on the CPU, not compiled: the message and node nets as plumbing's NodeNet and edge_max,
-    the same math with its backward written out (a speed trick, README "Speed": 1.24x 2f9820b's update on an
-    AVX2 CPU, 1.07x issue 25's; tests/test_update.py holds them to the plain nets). Elsewhere (a GPU,
-    --compile), the plain nets and torch's autograd."""
+    """Inside an update on the CPU, not compiled: node_sum and edge_max by plumbing's NodeNet and
+    fused_edge_max, the same math with its backward written out (a speed trick, README "Speed": 1.24x 2f9820b's
+    update on an AVX2 CPU, 1.07x issue 25's; tests/test_update.py holds them to the plain nets). Elsewhere (a
+    GPU, --compile), the plain nets and torch's autograd."""
     return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
 
 

@@ -426,7 +426,7 @@ class NodeNet(torch.autograd.Function):
         return tuple(grads)
 
 
-def edge_max(edges, w1, b1, w2, b2, n: int, dtype):
+def fused_edge_max(edges, w1, b1, w2, b2, n: int, dtype):
     """The scripts' edge_max of one Linear -> ReLU -> Linear -> ReLU net. Without gradients (the TD target's),
     in chunks of 64 samples, so that each chunk's hidden layer is still in cache for its second product."""
     if torch.is_grad_enabled() and w1.requires_grad:
@@ -443,7 +443,7 @@ def edge_nets(edges, w1, b1, w2, b2, n: int, dtype):
 
 
 class EdgeMax(torch.autograd.Function):
-    """edge_max with gradients. The max's gradient goes to the edge that gave it (shared among exact ties, as
+    """fused_edge_max with gradients. The max's gradient goes to the edge that gave it (shared among exact ties, as
     torch's amax does), where the ReLU let it through."""
 
     @staticmethod

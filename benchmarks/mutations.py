@@ -182,8 +182,10 @@ MUTATIONS = [
              "future = np.full(batch, seg_len - 1)", f"{TG} -k test_her_final"),
     Mutation("HER reward from the achieved config before the step", G, "reward=fetch5_env.goal_reached(ag_next, g)",
              "reward=fetch5_env.goal_reached(self.ag[w, ep, t], g)", f"{TG} -k test_her_final"),
-    Mutation("messages summed over edges", G, "MSG).amax(dim=2)", "MSG).sum(dim=2)",
+    Mutation("messages summed over edges", G, "m.shape[-1]).amax(dim=2)", "m.shape[-1]).sum(dim=2)",
              f"{TG} -k test_a_blocks_message_is_the_max"),
+    Mutation("kernels: messages summed over edges", P, "return x, h, y, y.amax(dim=2)", "return x, h, y, y.sum(dim=2)",
+             "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32'"),
     Mutation("edge input reads close for above", G, "above = np.arange(len(src)) + len(og.close_pairs(n_blocks))",
              "above = np.arange(len(src))", f"{TG} -k test_a_blocks_message_is_the_max"),
     # --- the semantic graph and its paths (SPEC §6) ----------------------------------------------------

@@ -179,8 +179,8 @@ def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
     """A node net's readout and a message net's max over edges, forward and every gradient, by the CPU kernels
     (fused) or the plain nets and torch's autograd. The node readout as the actor loss uses it (weights fixed,
     gradients to the action alone, zero for a third of the samples, as min(Q1, Q2) leaves them) and as the
-    critic loss does (weights and messages); the messages with gradients and without (the TD target's, in
-    chunks: 70 samples, not a multiple of the chunk)."""
+    critic loss does (weights and messages); both nets with gradients and without (the TD target's; the
+    messages then in chunks: 70 samples, not a multiple of the chunk)."""
     monkeypatch.setattr(gh, "fused", lambda x: fused)
     torch.manual_seed(seed)
     b, n = 70, N_BLOCKS
@@ -201,6 +201,7 @@ def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
         (msg.float() * torch.randn(b, n, 24)).sum().backward()
         with torch.no_grad():
             out["target messages"] = gh.edge_max(message, edges, n).float()
+            out["target readout"] = gh.node_sum(node, glob, local)
     out |= {"readout": readout.detach(), "messages": msg.detach().float(), "local": local.grad}
     out |= {f"weight {i}": p.grad for i, p in enumerate(weights)}
     return out
