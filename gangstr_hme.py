@@ -180,7 +180,9 @@ class MLP(nn.Module):
         if update_products.dtype is None:  # acting (and a plain reference): fp32
             x = F.linear(F.relu(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
             return F.relu(x) if self.out_relu else x
-        dtype = update_products.dtype if self.large else torch.float32  # the update's, off the CPU (see fused)
+        if fused(x) and not self.out_relu:  # a head in an update on the CPU: plumbing's kernel (see fused)
+            return plumbing.Head.apply(x, *self.params())
+        dtype = update_products.dtype if self.large else torch.float32  # the update's, off the CPU
         w1, b1, w2, b2 = (p.to(dtype) for p in self.params())
         x = F.linear(F.relu(F.linear(x.to(dtype), w1, b1)), w2, b2)
         return F.relu(x) if self.out_relu else x
@@ -222,10 +224,10 @@ def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def fused(x: torch.Tensor) -> bool:
-    """Inside an update on the CPU, not compiled: node_sum and edge_max by plumbing's NodeNet and
-    fused_edge_max, the same math with its backward written out (a speed trick, README "Speed": 1.24x 2f9820b's
-    update on an AVX2 CPU, 1.07x issue 25's; tests/test_update.py holds them to the plain nets). Elsewhere (a
-    GPU, --compile), the plain nets and torch's autograd."""
+    """Inside an update on the CPU, not compiled: node_sum, edge_max and the heads by plumbing's NodeNet,
+    fused_edge_max and Head, the same math with its backward written out (a speed trick, README "Speed": 1.24x
+    2f9820b's update at 1 thread on an AVX2 CPU, 1.06x issue 25's; tests/test_update.py holds them to the plain
+    nets). Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
     return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
 
 

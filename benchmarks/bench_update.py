@@ -215,16 +215,24 @@ def profile(mod, data: dict, precision: str, updates: int = 20):
     kinds = {"products": ("mkldnn::_linear_pointwise", "aten::mm", "aten::addmm", "aten::bmm"),
              "ReLU (forward and backward)": ("aten::threshold_backward", "aten::clamp_min", "aten::relu"),
              "copies and casts": ("aten::copy_", "aten::_to_copy", "aten::clone"),
-             "sums (bias gradients, over nodes)": ("aten::sum",), "max over edges": ("aten::amax", "aten::eq"),
-             "gather of edge inputs, concatenations": ("aten::index", "aten::cat")}  # fmt: skip
-    split = dict.fromkeys([*kinds, "the rest (Adam, small ops, Python)"], 0.0)
+             "sums (bias gradients, over nodes)": ("aten::sum",),
+             "max over edges (forward and backward)": ("aten::amax", "aten::eq", "aten::gt", "aten::bitwise_and",
+                                                       "aten::where", "aten::div"),
+             "gathers, concatenations, live samples": ("aten::index", "aten::cat", "aten::index_copy_", "aten::sort",
+                                                       "aten::any", "aten::new_zeros", "aten::zeros"),
+             "the CPU kernels' own Python": ("NodeNet", "NodeNetBackward", "EdgeMax", "EdgeMaxBackward", "Head",
+                                             "HeadBackward"),
+             "Adam": ("Optimizer.step#Adam.step", "aten::_fused_adam_",
+                      "Optimizer.zero_grad#Adam.zero_grad")}  # fmt: skip
+    rest = "the rest (views, casts, allocations, autograd, Python)"
+    split = dict.fromkeys([*kinds, rest], 0.0)
     for e in prof.key_averages():
-        kind = next((k for k, names in kinds.items() if e.key in names), "the rest (Adam, small ops, Python)")
+        kind = next((k for k, names in kinds.items() if e.key in names), rest)
         split[kind] += e.self_cpu_time_total / updates / 1e3
     total = sum(split.values())
     print(f"\nWhere a {precision} update's time goes (1 thread, profiled: {total:.1f} ms per update)")
     for k, ms in split.items():
-        print(f"  {k:<38} {ms:5.1f} ms  {ms / total:4.0%}")
+        print(f"  {k:<56} {ms:5.1f} ms  {ms / total:4.0%}")
 
 
 # --- 4(a): what bf16 does to the networks --------------------------------------------------------------

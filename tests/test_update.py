@@ -174,20 +174,22 @@ def test_fast_bf16_on_cpu_means_amx_or_avx512_bf16(monkeypatch, flags, fast):
     assert plumbing.fast_bf16(cuda=False) == (fast and torch.backends.mkldnn.is_available())
 
 
-# --- the update's CPU kernels (plumbing.NodeNet, plumbing.EdgeMax) against the plain nets ---------------------
+# --- the update's CPU kernels (plumbing.NodeNet, fused_edge_max, Head) against the plain nets -----------------
 def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
-    """A node net's readout and a message net's max over edges, forward and every gradient, by the CPU kernels
-    (fused) or the plain nets and torch's autograd. The node readout as the actor loss uses it (weights fixed,
-    gradients to the action alone, zero for a third of the samples, as min(Q1, Q2) leaves them) and as the
-    critic loss does (weights and messages); both nets with gradients and without (the TD target's; the
-    messages then in chunks: 70 samples, not a multiple of the chunk)."""
+    """A node net's readout, a head on it and a message net's max over edges, forward and every gradient, by
+    the CPU kernels (fused) or the plain nets and torch's autograd. The node readout as the actor loss uses it
+    (weights fixed, gradients to the action alone, zero for a third of the samples, as min(Q1, Q2) leaves
+    them, and for all of them once) and as the critic loss does (weights and messages); both nets with
+    gradients and without (the TD target's; the messages then in chunks: 70 samples, not a multiple of the
+    chunk)."""
     monkeypatch.setattr(gh, "fused", lambda x: fused)
     torch.manual_seed(seed)
     b, n = 70, N_BLOCKS
     node, message = gh.MLP(4 + 10 + 15 + 24, 256, 159, large=True), gh.MLP(8, 256, 24, large=True)
+    head = gh.MLP(159, 256, 1, out_relu=False)
     glob, local, edges = torch.randn(b, 14, requires_grad=True), torch.randn(b, n, 39), torch.randn(b, n * (n - 1), 8)
     local.requires_grad_()
-    weights = list(node.parameters()) + list(message.parameters())
+    weights = list(node.parameters()) + list(message.parameters()) + list(head.parameters())
     out = {}
     with gh.update_products(dtype):
         live = torch.rand(b, 1) < 0.67  # the samples whose twin was the min
@@ -195,9 +197,12 @@ def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
         (gh.node_sum(fixed, glob, local.detach()) * live * torch.randn(b, 159)).sum().backward()
         out["actor loss: action"] = glob.grad.clone()
         glob.grad = None
+        (gh.node_sum(fixed, glob, local.detach()) * 0).sum().backward()  # no live sample at all: 0 rows
+        assert not glob.grad.any()
+        glob.grad = None
         readout = gh.node_sum(node, glob.detach(), local)
         msg = gh.edge_max(message, edges, n)
-        (readout * torch.randn(b, 159)).sum().backward()
+        (head(readout).squeeze(-1) * torch.randn(b)).sum().backward()
         (msg.float() * torch.randn(b, n, 24)).sum().backward()
         with torch.no_grad():
             out["target messages"] = gh.edge_max(message, edges, n).float()
