@@ -211,9 +211,9 @@ def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
 
 def fused(x: torch.Tensor) -> bool:
     """Inside an update on the CPU, not compiled: node_sum, edge_max and the heads by plumbing's NodeNet,
-    fused_edge_max and Head, the same math with its backward written out (a speed trick, README "Speed": 1.24x
-    2f9820b's update at 1 thread on an AVX2 CPU, 1.06x issue 25's; tests/test_update.py holds them to the plain
-    nets). Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
+    fused_edge_max and Head, the same math with its backward written out (a speed trick, README "Speed": the
+    update 1.06-1.11x issue 25's on an AVX2 CPU, paired; tests/test_update.py holds them to the plain nets).
+    Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
     return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
 
 
