@@ -125,9 +125,11 @@ class Args:
     cuda: bool = False
     """train on the GPU if one is available"""
     compile: bool = False
-    """compile the SAC losses with torch.compile (start-up: a minute or more; see README)"""
+    """compile the SAC losses with torch.compile (start-up: about a minute on 2 CPU cores; docs/speed.md)"""
     precision: str = "fp32"
-    """the SAC update's large products: 'fp32', or 'bf16' (bf16 products, fp32 weights, losses and targets; README)"""
+    """the update's large products: 'fp32' or 'bf16' (bf16 products; weights, losses, targets fp32: docs/speed.md)"""
+    plain: bool = False
+    """every speed trick off: the update on the plain nets (no CPU kernels), Adam unfused, glibc's memory default"""
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
     init_from: str = ""
@@ -135,7 +137,7 @@ class Args:
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     freeze_normalizer: bool = False
-    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; README, "Fixed agent")"""
+    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/results.md)"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     runs_dir: str = "runs"
@@ -146,7 +148,8 @@ class Args:
 # The GNN actor-critic (SPEC §5; paper appendix "Object-centered architecture")
 # ------------------------------------------------------------------------------------------------
 BODY, PER_BLOCK, MSG = 10, 15, 24  # body features, features per block, message size
-ACTOR_NODE_OUT, CRITIC_NODE_OUT = 147, 159  # the node nets' output widths, the authors' (SPEC §5)
+# The node nets' output widths: the authors' code's, which loading the paper's trained agent needs (SPEC §5).
+ACTOR_NODE_OUT, CRITIC_NODE_OUT = 147, 159
 
 
 class MLP(nn.Module):
@@ -176,17 +179,17 @@ class MLP(nn.Module):
 
 
 @contextlib.contextmanager
-def update_products(dtype: torch.dtype):
+def update_products(dtype: torch.dtype, kernels: bool = True):
     """Within it, the networks compute as in a SAC update: the large nets' products in `dtype` (--precision),
-    on the CPU by plumbing's kernels (see fused). Outside it (acting), torch's F.linear in fp32."""
-    update_products.dtype = dtype
+    on the CPU by plumbing's kernels if `kernels` (see fused). Outside it (acting), torch's F.linear in fp32."""
+    update_products.dtype, update_products.kernels = dtype, kernels
     try:
         yield
     finally:
         update_products.dtype = None
 
 
-update_products.dtype = None
+update_products.dtype, update_products.kernels = None, False
 
 
 def node_sum(net: MLP, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
@@ -209,10 +212,13 @@ def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
 
 def fused(x: torch.Tensor) -> bool:
     """Inside an update on the CPU, not compiled: node_sum, edge_max and the heads by plumbing's NodeNet,
-    fused_edge_max and Head, the same math with its backward written out (a speed trick, README "Speed": the
-    update 1.06-1.11x issue 25's on an AVX2 CPU, paired; tests/test_update.py holds them to the plain nets).
+    fused_edge_max and Head, the same math with its backward written out (a speed trick, docs/speed.md: the
+    update 1.06-1.11x that of commit 25d2c6b on an AVX2 CPU, paired; tests/test_update.py holds them to the
+    plain nets). They implement MLP as written here: SAC checks that they still compute these nets' losses
+    (plumbing.kernels_compute) and runs the plain nets if not (a fork that changed MLP), or with --plain.
     Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
-    return update_products.dtype is not None and x.is_cpu and not torch.compiler.is_compiling()
+    in_update = update_products.dtype is not None and update_products.kernels
+    return in_update and x.is_cpu and not torch.compiler.is_compiling()
 
 
 def weight_view(module: nn.Module) -> nn.Module:
@@ -421,14 +427,18 @@ class SAC:
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
         # fused: Adam's step as one pass per tensor; on CPU torch's default is a dozen small ops per tensor (4x slower)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor, fused=True)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic, fused=True)
+        fused_adam = None if args.plain else True  # --plain: torch's default
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor, fused=fused_adam)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic, fused=fused_adam)
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
         self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
         self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
-        if self.device.type == "cpu":
+        self.kernels = self.device.type == "cpu" and not args.plain  # plumbing's CPU kernels (see fused)
+        if self.kernels:
+            self.kernels = plumbing.kernels_compute(self.losses, update_products, args.n_blocks)
+        if self.device.type == "cpu" and not args.plain:
             keep_freed_memory()
 
     @torch.inference_mode()
@@ -470,7 +480,7 @@ class SAC:
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
-        with update_products(self.products):  # --precision: the one switch (see update_products)
+        with update_products(self.products, self.kernels):  # --precision and the kernels: the switch (update_products)
             critic_loss, actor_loss, target, stats = self.compute_losses(batch)
         self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
         self.actor_opt.zero_grad()
@@ -499,8 +509,8 @@ class SAC:
 
 
 def keep_freed_memory():
-    """Keep the update's freed tensors in this process's heap for the next update (a speed trick, README
-    "Speed"). By default glibc returns a freed block of a few MB to the system and faults its pages back in,
+    """Keep the update's freed tensors in this process's heap for the next update (a speed trick,
+    docs/speed.md). By default glibc returns a freed block of a few MB to the system and faults its pages back in,
     zeroed, on the next allocation: about 1,500 page faults and a tenth of a CPU update's time."""
     libc = ctypes.CDLL(None) if os.name == "posix" else None
     if hasattr(libc, "mallopt"):  # glibc: blocks up to 32 MB from the heap, which keeps up to 1 GB free
@@ -949,8 +959,8 @@ def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
 class Sampler:
     """A goal sampler decides what every cycle does; the rest of the file uses only these hooks:
       GoalSampler(args, learner, workers)   built once per run (Run), after the Learner
-      cycle(w)                        worker w's cycle program: yields Requests, and must spend all of
-                                      w.left (every worker runs n_segments segments a cycle)
+      cycle(w)                        worker w's cycle program: yields Requests, and spends exactly w.left
+                                      (every worker runs n_segments segments a cycle: run_cycle checks it)
       after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
       after_update(batch, target)     after each SAC update, its batch and TD targets: a dict of 0-d tensors to log
       epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
@@ -958,6 +968,10 @@ class Sampler:
                                       load_state_dict receives whole: names no other entry has)
       stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
     and check_sampler_args(args), a function: the first bad value of its options, described, or None.
+    Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
+    global generator or a generator of the sampler's own): exact --resume and the same run under any split of
+    the workers into processes (--num-envs, torchrun) depend on it (SPEC §11). What workers share is merged in
+    after_cycle, in worker order.
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
     goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome: an attempt the
     cycle's budget cut off has none). A sampler (the section after this one) overrides what it changes."""
@@ -1244,6 +1258,7 @@ def run_cycle(run: Run) -> list[list[Segment]]:
     for w in run.workers:
         w.left, w.segments = run.args.n_segments, []
     drive(run.learner.agent, {w: run.sampler.cycle(w) for w in run.workers})
+    plumbing.check_budgets(run)  # each worker spent exactly its segments (a forked sampler may not)
     run.sampler.after_cycle()
     return [w.segments for w in run.workers]
 

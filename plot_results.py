@@ -1,4 +1,4 @@
-# Docs: README.md, section "Plotting"; the paper's figures (Section 4) from the runs' progress.csv.
+# Docs: docs/training.md and docs/results.md; the paper's figures (Section 4) from the runs' progress.csv.
 """Plot the paper's figures from run folders (SPEC §10: one progress.csv row per epoch).
 
     python plot_results.py --condition SP-20% runs/gangstr_hme__* --condition SP-0% runs/gangstr_sp0__* \
@@ -260,7 +260,7 @@ def plot_discoveries(plt, conditions: dict, out: Path):
 
 
 # ------------------------------------------------------------------------------------------------
-# Tables (Markdown, for the README)
+# Tables (Markdown, for docs/results.md)
 # ------------------------------------------------------------------------------------------------
 def run_label(name: str, run: dict) -> str:
     return f"{name} seed {int(run['seed'])}" if "seed" in run else name

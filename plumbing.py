@@ -1,4 +1,4 @@
-# Docs: README.md, sections "Files" and "Training"; SPEC §10 (outputs, checkpoints), §11 (processes).
+# Docs: README.md, docs/training.md, docs/scaling.md; SPEC §10 (outputs, checkpoints), §11 (processes).
 """What is not the algorithm, written once for the three training scripts: the command line, processes,
 checkpoints and the paper's trained agent, outputs and interruptions.
 
@@ -154,6 +154,9 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
     if a.precision not in ("fp32", "bf16"):
         return f"--precision must be 'fp32' or 'bf16', got {a.precision!r}"
+    if a.plain and (a.compile or a.precision != "fp32"):
+        trick = "--compile" if a.compile else f"--precision {a.precision}"
+        return f"--plain turns every speed trick off: not with {trick}"
     return check_device(a) or check_run_control(a) or check_sampler_args(a)
 
 
@@ -194,7 +197,7 @@ def fast_bf16(cuda: bool) -> bool:
 
 def cpu_line() -> str:
     """This CPU and its matrix instructions, on the first line of every speed benchmark: each figure names its
-    machine (README "Speed"). A vague model name ('AMD EPYC' in a VM) gets its family and model numbers."""
+    machine (docs/speed.md). A vague model name ('AMD EPYC' in a VM) gets its family and model numbers."""
     caps = torch.cpu.get_capabilities()
     info = Path("/proc/cpuinfo").read_text().split("\n\n")[0] if os.path.exists("/proc/cpuinfo") else ""
     fields = dict(line.split(":", 1) for line in info.splitlines() if ":" in line)
@@ -327,7 +330,7 @@ def sum_grads(params: list[torch.Tensor]):
 
 
 def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
-    """float32 arrays (an update's batch) as tensors on `device` (a speed trick; README "Installing for a GPU").
+    """float32 arrays (an update's batch) as tensors on `device` (a speed trick; docs/scaling.md).
     On CPU, the arrays themselves: no copy. On a GPU, one copy of them all from pinned memory, which the CPU
     need not wait for: it draws the next batch while the GPU works (it took ten blocking copies, the observations
     twice, before). Torch's cache of pinned memory reuses the block once its copy is done."""
@@ -341,13 +344,24 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
     return {k: t.view(v.shape) for (k, v), t in zip(arrays.items(), parts, strict=True)}
 
 
+def check_budgets(run):
+    """After a cycle: every worker spent exactly its budget of segments (a cycle spends all of w.left, Sampler).
+    Otherwise stop now, naming the sampler and the worker: with one worker a short cycle would silently store
+    fewer segments, with several the replays would fail to stack far from the cause."""
+    for w in run.workers:
+        if w.left != 0:
+            n = run.args.n_segments
+            sys.exit(f"error: {type(run.sampler).__name__}.cycle spent {n - w.left} of worker {w.index}'s {n} "
+                     "segments this cycle; a cycle spends exactly w.left (see Sampler)")  # fmt: skip
+
+
 def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
     """Counts of this process's workers (a goal sampler's stats), summed over every process."""
     return dict(zip(keys, all_sum(np.array([counts[k] for k in keys], dtype=np.float64)), strict=True))
 
 
 # ------------------------------------------------------------------------------------------------
-# The SAC update's CPU kernels (a speed trick; README "Speed"): the message and node nets of the
+# The SAC update's CPU kernels (a speed trick; docs/speed.md): the message and node nets of the
 # training scripts, the same math, each one autograd node with its backward written out. Products by
 # oneDNN, ReLUs fused into them or applied in place, only the gradients that are needed.
 # ------------------------------------------------------------------------------------------------
@@ -462,9 +476,38 @@ class EdgeMax(torch.autograd.Function):
         return None, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g), None, None
 
 
+def kernels_compute(losses, update_products, n_blocks: int) -> bool:
+    """Whether the kernels above compute a script's SAC losses (its SAC.losses) as its plain nets do, on a small
+    batch of random inputs: the losses and TD targets within update_products(fp32, kernels) and without the
+    kernels, equal up to float rounding. The kernels implement the scripts' MLP as written (Linear -> ReLU ->
+    Linear (-> ReLU), max over edges, sum over nodes); a fork that changes MLP or an aggregation changes the
+    plain nets alone. Then False, said in one line: the update runs the plain nets. Draws from its own
+    generator (the run's random streams are untouched) and changes no weight."""
+    gen = torch.Generator().manual_seed(0)
+    rows, obs_dim, dim = 16, fetch5_env.obs_size(n_blocks), og.config_dim(n_blocks)
+    normal = lambda *shape: torch.randn(*shape, generator=gen)  # noqa: E731
+    config = lambda: torch.randint(0, 2, (rows, dim), generator=gen).float() * 2 - 1  # noqa: E731
+    batch = dict(obs=normal(rows, obs_dim), obs_next=normal(rows, obs_dim), ag=config(), ag_next=config(),
+                 g=config(), action=normal(rows, 4).tanh(), reward=torch.randint(0, 2, (rows,), generator=gen).float(),
+                 noise_next=normal(rows, 4), noise_pi=normal(rows, 4))  # fmt: skip
+    values = []
+    for kernels in (True, False):
+        try:
+            with update_products(torch.float32, kernels):
+                critic_loss, actor_loss, target, _ = losses(batch)
+            values.append(torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target]))
+        except Exception as e:  # noqa: BLE001 (a net the kernels cannot run, of another shape: not theirs)
+            values.append(e)
+    same = all(isinstance(v, torch.Tensor) for v in values) and torch.allclose(*values, rtol=1e-4, atol=1e-4)
+    if not same and rank() == 0:
+        print("CPU kernels off: plumbing's kernels no longer compute this script's nets (MLP, node_sum or edge_max "
+              "changed); the SAC update runs the plain nets", flush=True)  # fmt: skip
+    return same
+
+
 class Head(torch.autograd.Function):
     """A head (Linear -> ReLU -> Linear, fp32, on the node read-out), its products by oneDNN as the kernels
-    above: torch's go to MKL, at half oneDNN's rate on the AMD EPYC with AVX512-BF16 (README "Speed")."""
+    above: torch's go to MKL, at half oneDNN's rate on the AMD EPYC with AVX512-BF16 (docs/speed.md)."""
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2):
@@ -620,11 +663,11 @@ def checkpoint_error(flag: str, path: str, reason: str):
     sys.exit(2)
 
 
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "save_buffer", "resume")  # --resume may change
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "plain", "save_buffer", "resume")  # --resume may
 # --eval-only's own; among them precision: acting never computes in bf16 (update_products), so a run trained
 # in bf16 is evaluated in fp32 unless the flag says otherwise, where bf16 is slow too.
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
-                "threads", "cuda", "precision", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs",
+                "threads", "cuda", "precision", "plain", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs",
                 "resume")  # fmt: skip
 
 

@@ -1,4 +1,4 @@
-"""Env speed (issue: fetch5_env): median env steps/s with random actions, resetting every 40 steps,
+"""Env speed (fetch5_env.py): median env steps/s with random actions, resetting every 40 steps,
 and the share of a step spent inside raw `mujoco.mj_step` (20 substeps) versus Python.
 
     python benchmarks/bench_env.py [--n-blocks 5] [--steps 4000] [--repeats 7] [--baseline REV]

@@ -1,7 +1,7 @@
-"""Grasp fidelity (issues 13 and 27): scripted pick-and-place, 3-stack and finger landing over seeded
-resets, in ENV_VERSION 2's physics and in this env's, side by side; prints the success rate, the share
-of block-steps with a block on its side, the gripper's largest roll, how many episodes landed a finger
-on a block's top face, and the finger position while holding.
+"""Grasp fidelity (ENV_VERSION 2 and 3, commits 96deb0b, 22634d4): scripted pick-and-place, 3-stack and
+finger landing over seeded resets, in ENV_VERSION 2's physics and in this env's, side by side; prints the
+success rate, the share of block-steps with a block on its side, the gripper's largest roll, how many
+episodes landed a finger on a block's top face, and the finger position while holding.
 
     python benchmarks/bench_grasp.py [--seeds 100] [--env-dir DIR]
 
@@ -9,7 +9,7 @@ A block is on its side when |roll| or |pitch| > 0.5 rad in gym-robotics' `mat2eu
 (computed here from the block's rotation matrix, so that an env with another Euler convention is
 measured the same way). The gripper's roll is its pointing axis' angle from straight down, taken after
 every physics substep. "Version 2" is this env's scene compiled without the fingers' explicit
-inertials (issue 27, SPEC §3): their 4 kg then sit in their boxes, as in ENV_VERSION 2. `--env-dir`
+inertials (ENV_VERSION 3, SPEC §3): their 4 kg then sit in their boxes, as in ENV_VERSION 2. `--env-dir`
 imports fetch5_env.py (and its assets/) from DIR instead of this checkout, e.g. `git show
 b3d02ef:fetch5_env.py` for version 1. The scripted controllers are the tests' own (tests/test_env.py),
 so bench and tests grasp alike; "finger landing" is the roll test's descent onto block 0 of each reset.
@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-TIP_ANGLE = 0.5  # rad: |roll| or |pitch| beyond this = the block lies on its side (issue 13)
+TIP_ANGLE = 0.5  # rad: |roll| or |pitch| beyond this = the block lies on its side
 
 
 def roll_pitch(xmat: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Learner speed (issue: gangstr_hme part 1), medians over repeats, CPU:
+"""Learner speed (gangstr_hme.py), medians over repeats, CPU:
 
 - one SAC update of the GNN actor-critic (batch 256), also with --precision bf16 where the CPU has bf16
   instructions, and, as a yardstick in the same run, one SAC update of plain MLPs (two hidden layers of 256)

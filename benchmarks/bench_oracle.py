@@ -1,4 +1,4 @@
-"""Oracle build time (issue: oracle_graph): median time to build the 5-block oracle graph from
+"""Oracle build time (oracle_graph.py): median time to build the 5-block oracle graph from
 scratch (grid search over permutation classes + lift to all permutations), every cached table
 (permutations, byte look-up tables, evaluation classes) cleared before each repeat.
 

@@ -96,7 +96,7 @@ def main():
     parser.add_argument("--cuda", action="store_true", help="the 24-worker learner on the GPU")
     parser.add_argument("--skip-scaling", action="store_true", help="only the 24-worker cycle")
     parser.add_argument("--skip-24", action="store_true", help="only the 1- and 2-worker conditions")
-    parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"], help="the SAC update's (README)")
+    parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"], help="the update's (docs/speed.md)")
     args = parser.parse_args()
     print(plumbing.cpu_line())
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun

@@ -1,10 +1,11 @@
-"""The SAC update against the machine's limit (issue 25), in one run, medians over interleaved repeats:
+"""The SAC update against the machine's limit (docs/speed.md), in one run, medians over interleaved repeats:
 
 - the update's FLOPs (torch.utils.flop_counter.FlopCounterMode) and its products' shapes;
 - this machine's fp32 and bf16 product rates at those shapes (torch's own product, MKL on CPU, and
   oneDNN's), and the update's floor: the sum of its products' times, each at the fastest rate;
 - the update's time (5 blocks, batch 256) at 1 and 2 threads, fp32 and bf16, each over its floor, against
-  the update of commit 2f9820b (before the speed tricks), in the same run;
+  the update of commit 2f9820b (before the speed tricks) and this checkout's with --plain (every speed
+  trick off), in the same run;
 - the single-observation action, before and now;
 - collected env steps per second of a 1-worker 5-block training cycle (10 segments, then 30 updates), per
   precision, before and now.
@@ -13,7 +14,7 @@ Each measured condition runs in a fresh process (the update's memory settings ar
 keep_freed_memory), the conditions interleaved round by round so that drifts in the machine's load hit each.
 The code of 2f9820b comes from git (`git show 2f9820b:gangstr_hme.py`), imported from a temporary folder.
 
---drift (issue 25, 4a): from the same start and the same batches, 1,000 updates in bf16 and in fp32, and in fp32
+--drift: from the same start and the same batches, 1,000 updates in bf16 and in fp32, and in fp32
 at 2 threads (summation order alone differs): the gap between their networks' Q values and actions on held-out
 observations.
 
@@ -37,13 +38,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 import bench_learner  # noqa: E402 (this folder: the median of timed calls)
 
-BEFORE = "2f9820b"  # the update before issue 25's speed tricks
+BEFORE = "2f9820b"  # the update before any speed trick
 N_BLOCKS, BATCH = 5, 256
 
 
 def load(code: str, folder: Path):
     """The training script at `code`: 'now' (this checkout's gangstr_hme.py; 'now-default-heap': without
-    keep_freed_memory, to show what it buys) or 'before' (BEFORE's, from git,
+    keep_freed_memory, to show what it buys; 'now-plain': run with --plain) or 'before' (BEFORE's, from git,
     written to `folder` and imported under another name; it imports this checkout's env and oracle, whose
     assets sit beside them). BEFORE had no plumbing.py: its script holds all it runs."""
     if code.startswith("now"):
@@ -83,8 +84,9 @@ def make_data(mod, path: Path, n_batches: int, n_segments: int = 30, seed: int =
                     obs=(segments[0].obs[0], segments[0].ag[0], segments[0].g)), path)  # fmt: skip
 
 
-def agent_from(mod, data: dict, precision: str):
-    args = mod.Args(n_blocks=N_BLOCKS, **({"precision": precision} if precision != "fp32" else {}))
+def agent_from(mod, data: dict, precision: str, plain: bool = False):
+    extra = ({"precision": precision} if precision != "fp32" else {}) | ({"plain": True} if plain else {})
+    args = mod.Args(n_blocks=N_BLOCKS, **extra)
     agent = mod.SAC(args, 10 + 15 * N_BLOCKS, torch.device("cpu"))
     agent.actor.load_state_dict(data["actor"])
     agent.critic.load_state_dict(data["critic"])
@@ -99,9 +101,9 @@ def median_ms(fn, repeats: int) -> float:
 
 
 # --- one condition, in its own process ---------------------------------------------------------------
-def condition_updates(mod, data: dict, precision: str, updates: int) -> dict:
+def condition_updates(mod, data: dict, precision: str, updates: int, plain: bool = False) -> dict:
     """Median ms of one update at 1 and 2 threads, and of one single-observation action (1 thread)."""
-    agent = agent_from(mod, data, precision)
+    agent = agent_from(mod, data, precision, plain)
     batches = data["batches"]
     out = {}
     for threads in (1, 2):
@@ -141,7 +143,8 @@ def worker(ns):
     folder = Path(ns.folder)
     mod = load(ns.code, folder)
     if ns.worker == "updates":
-        out = condition_updates(mod, torch.load(folder / "data.pt", weights_only=False), ns.precision, ns.updates)
+        data = torch.load(folder / "data.pt", weights_only=False)
+        out = condition_updates(mod, data, ns.precision, ns.updates, plain=ns.code == "now-plain")
     else:
         out = condition_cycles(mod, ns.precision, ns.cycles)
     print(json.dumps(out))
@@ -315,7 +318,7 @@ def main():
     parser.add_argument("--drift", action="store_true", help="only 4(a): what bf16 does to the networks")
     parser.add_argument("--drift-updates", type=int, default=1000)
     parser.add_argument("--worker", choices=["updates", "cycles"], help=argparse.SUPPRESS)
-    parser.add_argument("--code", choices=["now", "now-default-heap", "before"], help=argparse.SUPPRESS)
+    parser.add_argument("--code", choices=["now", "now-default-heap", "now-plain", "before"], help=argparse.SUPPRESS)
     parser.add_argument("--precision", default="fp32", help=argparse.SUPPRESS)
     parser.add_argument("--folder", help=argparse.SUPPRESS)
     ns = parser.parse_args()
@@ -345,7 +348,8 @@ def main():
             print(f"  {'x'.join(map(str, s)):<18} {shapes.count(s):>5}" + "".join(f" {r:15.0f}" for r in rates))
         floor = {t: floors(shapes, times[t]) for t in (1, 2)}
 
-        conditions = [("before", "fp32"), ("now-default-heap", "fp32")] + [("now", p) for p in precisions]
+        conditions = [("before", "fp32"), ("now-plain", "fp32"), ("now-default-heap", "fp32")]
+        conditions += [("now", p) for p in precisions]
         got = {c: [] for c in conditions}
         for r in range(ns.rounds):
             for c in conditions if r % 2 == 0 else conditions[::-1]:

@@ -1,7 +1,7 @@
-"""The GPU smoke check (issue 35): what a `--cuda` user meets, tried in one command on a machine with a GPU before
+"""The GPU smoke check: what a `--cuda` user meets, tried in one command on a machine with a GPU before
 any long run; about 3-4 minutes on one GPU. One line per check, PASS, FAIL or INFO (a fact to read, not a verdict),
 then a summary; exit code 1 if any check failed. On a machine without CUDA it says so in one line and exits 0 (CI
-has no GPU). README "Installing for a GPU" says what each line means and what stays unverified until it has run.
+has no GPU). docs/scaling.md says what each line means and what stays unverified until it has run.
 
     python benchmarks/gpu_smoke.py [--keep DIR] [--skip-bench]
 
@@ -283,7 +283,7 @@ def main() -> int:
     args = parser.parse_args()
     if not torch.cuda.is_available():
         print(f"gpu_smoke: no CUDA device here (torch {torch.__version__}, built for CUDA {torch.version.cuda}): "
-              "nothing checked; run it on a machine with a GPU (README, 'Installing for a GPU')")  # fmt: skip
+              "nothing checked; run it on a machine with a GPU (docs/scaling.md)")  # fmt: skip
         return 0
     start = time.perf_counter()
     tmp = Path(args.keep or tempfile.mkdtemp(prefix="gpu_smoke-"))
@@ -324,7 +324,7 @@ def main() -> int:
                  "eval GPU>CPU": (evaluated, ckpt["two_epochs"]),
                  "eval CPU>GPU": (evaluated, copies["eval_cpu"], "--cuda"),
                  "init-from": (initialized, ckpt["cpu"], tmp)}  # fmt: skip
-        if "bf16" in ckpt:  # a bf16 run evaluated where bf16 may be slow (issue 35), and on its GPU
+        if "bf16" in ckpt:  # a bf16 run evaluated where bf16 may be slow, and on its GPU
             stage |= {"eval bf16>CPU": (evaluated, ckpt["bf16"]), "eval bf16>GPU": (evaluated, ckpt["bf16"], "--cuda")}
         with concurrent.futures.ThreadPoolExecutor(len(stage)) as pool:
             futures = {name: pool.submit(fn, *a) for name, (fn, *a) in stage.items()}

@@ -1,6 +1,6 @@
 """Can the tests fail? Breaks the code one small change at a time, each in a fresh copy of the project,
 and runs the tests that claim the behaviour it breaks: a mutation they do not notice ("survived") is a
-test that cannot fail (STYLE.md §6). Not part of the test suite or CI: the whole list takes several minutes.
+test that cannot fail (docs/development.md). Not part of the test suite or CI: the whole list takes several minutes.
 
     python benchmarks/mutations.py                # every mutation
     python benchmarks/mutations.py -k her --jobs 2
@@ -53,7 +53,7 @@ TGPU = "tests/test_gpu.py"
 
 # fmt: off
 MUTATIONS = [
-    # --- issue 34: the update's CPU kernels --------------------------------------------------------------
+    # --- the update's CPU kernels ---------------------------------------------------------------------
     Mutation("kernels: live samples cut at a multiple of 32 (some left out)", P,
              "k = min(len(grad), -(-int(live.sum()) // multiple) * multiple)",
              "k = min(len(grad), int(live.sum()) // multiple * multiple)",
@@ -75,7 +75,49 @@ MUTATIONS = [
              "tests/test_update.py -k 'cpu_kernels_compute_the_plain_nets_in_bf16'"),
     Mutation("cpu_line: AMX read from the AVX512-BF16 flag", P,
              '(("AMX", "amx_bf16"),', '(("AMX", "avx512_bf16"),', "tests/test_update.py -k cpu_line"),
-    # --- issue 26: the mutations the suite used to miss ------------------------------------------------
+    Mutation("kernels: the max's gradient not shared among exact ties (each tied edge gets all of it)", P,
+             "g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)",
+             "g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0)",
+             "tests/test_update.py -k ties"),
+    # --- what a fork may change: a sampler's budget, the kernels' probe, --plain -------------------------
+    Mutation("budget: a cycle's segments not checked", G,
+             "    plumbing.check_budgets(run)  # each worker spent exactly its segments (a forked sampler may not)\n",
+             "", "tests/test_fork.py -k budget"),
+    Mutation("budget: a cycle that overspends passes", P,
+             "        if w.left != 0:\n            n = run.args.n_segments",
+             "        if w.left > 0:\n            n = run.args.n_segments", "tests/test_fork.py -k budget"),
+    Mutation("budget: the message names the first worker, not the one that failed", P,
+             "spent {n - w.left} of worker {w.index}'s", "spent {n - w.left} of worker {run.workers[0].index}'s",
+             "tests/test_fork.py -k budget"),
+    Mutation("kernels: the probe finds every net the kernels' own", P,
+             ("same = all(isinstance(v, torch.Tensor) for v in values) and torch.allclose(*values, rtol=1e-4, "
+              "atol=1e-4)"), "same = all(isinstance(v, torch.Tensor) for v in values)",
+             "tests/test_fork.py -k 'changes_mlp or aggregation'"),
+    Mutation("kernels: SAC skips the probe", G,
+             "            self.kernels = plumbing.kernels_compute(self.losses, update_products, args.n_blocks)",
+             "            pass", "tests/test_fork.py -k changes_mlp"),
+    Mutation("kernels: fused() ignores the switch", G,
+             "in_update = update_products.dtype is not None and update_products.kernels",
+             "in_update = update_products.dtype is not None", "tests/test_fork.py -k 'changes_mlp or plain_turns'"),
+    Mutation("--plain: the kernels stay on", G,
+             'self.kernels = self.device.type == "cpu" and not args.plain',
+             'self.kernels = self.device.type == "cpu"', "tests/test_fork.py -k plain_turns"),
+    Mutation("--plain: Adam stays fused", G, "fused_adam = None if args.plain else True", "fused_adam = True",
+             "tests/test_fork.py -k plain_turns"),
+    Mutation("--plain: freed memory still kept", G,
+             'if self.device.type == "cpu" and not args.plain:\n            keep',
+             'if self.device.type == "cpu":\n            keep', "tests/test_fork.py -k plain_turns"),
+    Mutation("--plain: bf16 accepted with it", P, 'if a.plain and (a.compile or a.precision != "fp32"):',
+             "if a.plain and a.compile:", "tests/test_fork.py -k refuses"),
+    Mutation("--plain: in the lp baseline, the kernels stay on", LP,
+             'self.kernels = self.device.type == "cpu" and not args.plain',
+             'self.kernels = self.device.type == "cpu"', "tests/test_fork.py -k plain_turns"),
+    # --- the project's own documents ---------------------------------------------------------------
+    Mutation("docs: a SPEC section that does not exist", G, "every number: SPEC §5-§7, §9-§12;",
+             "every number: SPEC §5-§7, §9-§14;", "tests/test_docs.py -k section_sign"),
+    Mutation("docs: a loose reference to a tracker", G, "update 1.06-1.11x that of commit 25d2c6b",
+             "update 1.06-1.11x issue 25's", "tests/test_docs.py -k loose"),
+    # --- mutations the suite used to miss -------------------------------------------------------
     Mutation("paper layers: mean and log-std heads swapped", P,
              'mean_linear", "actor", "head.out"),\n    ("rho_actor.log_std_linear',
              'log_std_linear", "actor", "head.out"),\n    ("rho_actor.mean_linear',
@@ -306,7 +348,7 @@ MUTATIONS = [
              "tests/test_paper_agent.py -k 'foreign_object and touch'"),
     Mutation("--resume ignores flags that contradict the checkpoint", P,
              "    if bad:\n", "    if bad and args.eval_only:\n", f"{TG} -k 'contradict and resume'"),
-    # --- what a --cuda user meets, checked on a CPU (issue 35) ----------------------------------------
+    # --- what a --cuda user meets, checked on a CPU ------------------------------------------------
     Mutation("gpu: --eval-only keeps a bf16 checkpoint's --precision", P,
              '"threads", "cuda", "precision", "eval_only",', '"threads", "cuda", "eval_only",',
              f"{TGPU} -k evaluated_in_fp32"),
@@ -342,7 +384,7 @@ MUTATIONS = [
     Mutation("gpu: the smoke check fails where there is no GPU", "benchmarks/gpu_smoke.py",
              "        return 0\n    start = time.perf_counter()", "        return 1\n    start = time.perf_counter()",
              f"{TGPU} -k smoke"),
-    # --- a worker's streams and outcomes (issue 26's defects), the progress line (issue 24) -----------
+    # --- a worker's streams and outcomes, the progress line -----------------------------------------------
     Mutation("a worker and its env seeded with the same number: one stream read twice", G,
              ("self.rng = np.random.default_rng(mine)", "self.env.reset(seed=int(env.generate_state(1)[0]))"),
              ("self.rng = np.random.default_rng(words[0])", "self.env.reset(seed=words[0])"),
@@ -355,7 +397,7 @@ MUTATIONS = [
     Mutation("time left in the epoch without its evaluation", P,
              "epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval",
              "epoch_left = per_cycle * (a.n_cycles - run.cycle)", "tests/test_plumbing.py -k progress"),
-    # --- what the partner opens (issue 33): discoveries, arrivals, the fixed agent, evaluation sub-goals -----
+    # --- what the partner opens: discoveries, arrivals, the fixed agent, evaluation sub-goals -----
     Mutation("agent nodes per class count the configs met", P,
              "int(np.isin(og.to_mask(m), nodes).sum()) for k, m", "int(np.isin(og.to_mask(m), met).sum()) for k, m",
              f"{TG} -k agent_nodes_per_class"),

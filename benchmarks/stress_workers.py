@@ -1,5 +1,5 @@
 """Do 2-worker runs exit cleanly? Launches many tiny `torchrun --nproc-per-node 2` runs of each training
-script and counts their exit codes (issue: gloo's worker thread could abort the interpreter's exit with
+script and counts their exit codes (the defect it checks: gloo's worker thread could abort the interpreter's exit with
 SIGABRT after all the work was done). Not part of the test suite: 300 runs take about half an hour.
 
     python benchmarks/stress_workers.py [--runs 100] [--scripts gangstr_hme.py lp_baseline.py vds_baseline.py]

@@ -70,7 +70,7 @@ def test_a_baseline_differs_from_gangstr_hme_only_in_its_goal_sampler(script):
 
 @pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
 def test_diff_u_of_gangstr_hme_and_a_baseline_has_at_most_3_hunks(script):
-    """The README's promise (section "Baselines"): `diff -u gangstr_hme.py <baseline>` shows 3 hunks, the
+    """The README's promise (forking a sampler): `diff -u gangstr_hme.py <baseline>` shows 3 hunks, the
     module docstring, the Args sampler group and the goal-sampler section. Counted as difflib.unified_diff
     prints them (3 lines of context: changes closer than 7 lines share a hunk), as diff -u does."""
     ours, theirs = ((ROOT / name).read_text().splitlines() for name in ("gangstr_hme.py", script))

@@ -449,7 +449,7 @@ def test_no_400_step_action_sequence_takes_the_gripper_out_of_the_workspace(seed
 
 
 def test_env_version_names_this_physics_as_version_3():
-    # Checkpoints store it and are refused under another version: bumped with this physics (issue 27).
+    # Checkpoints store it and are refused under another version: bumped with this physics (commit 22634d4).
     assert isinstance(fe.ENV_VERSION, int) and fe.ENV_VERSION == 3
 
 

@@ -1,6 +1,6 @@
-"""What a --cuda user meets (issue 35), checked on a CPU: the device probes are monkeypatched, and the `meta`
+"""What a --cuda user meets, checked on a CPU: the device probes are monkeypatched, and the `meta`
 device stands in for a GPU where a tensor must cross to one. What only a GPU can show is in
-benchmarks/gpu_smoke.py (README "Installing for a GPU"); its one line on a machine without CUDA is checked here."""
+benchmarks/gpu_smoke.py (docs/scaling.md); its one line on a machine without CUDA is checked here."""
 
 import dataclasses
 import datetime

@@ -1,4 +1,4 @@
-"""The paper's own trained agent (the authors' hipstr/gangstr.pt, issue 15): its file format loads into our
+"""The paper's own trained agent (the authors' hipstr/gangstr.pt): its file format loads into our
 networks (--checkpoint, --init-from), a file holding anything else is refused unrun, evaluation can plan on
 the oracle graph (--plan-on oracle), and --init-from starts a run that resumes like any other."""
 
@@ -59,7 +59,7 @@ def authors_state_dict(layers: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> 
     return root.state_dict()
 
 
-# The authors' layers (issue 15, read from their file): name -> (our network, our layer, the rows of it that
+# The authors' layers (read from their file): name -> (our network, our layer, the rows of it that
 # the layer fills, its weight's shape). Written out here, apart from the loader's own table, so that the round
 # trip checks that table against the paper's roles: SPEC §5's order, the actor head's mean rows above its
 # log-std rows. (The shapes do not depend on the number of blocks.)

@@ -147,8 +147,8 @@ def test_welch_degrees_of_freedom_follow_the_unequal_variances(n):
 
 
 def test_the_committed_social_partner_runs_still_plot_and_tabulate(tmp_path):
-    # tests/data/sp_3blocks_sample: the first 30 epochs of the runs in results/sp_3blocks (README "Does the
-    # social partner help?"), so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
+    # tests/data/sp_3blocks_sample: the first 30 epochs of the runs in results/sp_3blocks (docs/results.md),
+    # so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
     sample = ROOT / "tests" / "data" / "sp_3blocks_sample"
     social, alone = sorted(sample.glob("sp20_seed*")), sorted(sample.glob("sp0_seed*"))
     assert social and alone
@@ -180,7 +180,7 @@ def markdown_table_after(text: str, heading: str) -> list[list[str]]:
 
 def test_the_committed_discovery_runs_plot_and_tabulate_what_the_partner_opens(tmp_path):
     # tests/data/discovery_5blocks_sample: the first 10 epochs of two seeds of each arm of results/discovery_5blocks
-    # (README "What the partner opens"), so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
+    # (docs/results.md), so that plot_results.py keeps reading what gangstr_hme.py wrote for them.
     sample = ROOT / "tests" / "data" / "discovery_5blocks_sample"
     arms = {name: sorted(sample.glob(f"{stem}_seed*")) for name, stem in
             (("SP-0", "sp0"), ("SP-0.2%", "sp0.2pct"), ("SP-20%", "sp20"))}  # fmt: skip

@@ -1,4 +1,4 @@
-"""The SAC update's speed tricks (README "Speed"): the fast fp32 update computes SPEC §5's losses, TD targets
+"""The SAC update's speed tricks (docs/speed.md): the fast fp32 update computes SPEC §5's losses, TD targets
 and gradients to float tolerance, checked against a plain re-implementation written here; --precision bf16
 keeps weights, optimizer state, targets and losses in fp32, and is refused where the device has no fast bf16."""
 
@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 import gangstr_hme as gh
 import oracle_graph as og
@@ -240,3 +241,24 @@ def test_cpu_line_names_the_cpu_and_its_matrix_instructions(monkeypatch):
     assert "AMX no, AVX512-BF16 yes, AVX512 no, AVX2 yes" in plumbing.cpu_line()
     caps.update(avx512_bf16=False)
     assert "fast bf16: False" in plumbing.cpu_line()
+
+
+def test_the_max_over_edges_shares_its_gradient_among_exact_ties_as_amax_does():
+    # Small integers throughout: every product and sum is exact in fp32, whatever order a kernel sums in, so
+    # edges with the same input tie exactly; node i's two edges get the same input in half the samples.
+    gen = torch.Generator().manual_seed(0)
+    b, n = 16, 3
+    ints = lambda *shape: torch.randint(-2, 3, shape, generator=gen).float()  # noqa: E731
+    w1, b1, w2, b2 = ints(6, 8), ints(6), ints(4, 6), ints(4)
+    edges = ints(b, n * (n - 1), 8)
+    edges.view(b, n, n - 1, 8)[::2, :, 1] = edges.view(b, n, n - 1, 8)[::2, :, 0]
+    grad = ints(b, n, 4)
+    weights = [t.clone().requires_grad_() for t in (w1, b1, w2, b2)]
+    (plumbing.EdgeMax.apply(edges, *weights, n, torch.float32) * grad).sum().backward()
+    ref = [t.clone().requires_grad_() for t in (w1, b1, w2, b2)]
+    y = F.relu(F.linear(F.relu(F.linear(edges, ref[0], ref[1])), ref[2], ref[3])).view(b, n, n - 1, 4)
+    (y.amax(dim=2) * grad).sum().backward()
+    ties = ((y == y.amax(dim=2, keepdim=True)) & (y > 0)).sum(2) > 1
+    assert ties.sum() >= 10  # exact ties, where the gradient is shared
+    for mine, theirs in zip(weights, ref, strict=True):
+        torch.testing.assert_close(mine.grad, theirs.grad, rtol=0, atol=0)

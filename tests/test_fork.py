@@ -1,0 +1,153 @@
+"""What a fork of a training script may change without silently breaking the run: a goal sampler that spends
+too few or too many of a cycle's segments is stopped at once, naming itself and the worker (Sampler's
+contract); a changed MLP takes the update off the CPU kernels, which implement the nets as written; --plain
+turns every speed trick off."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+import gangstr_hme as gh
+import lp_baseline as lp
+import oracle_graph as og
+import plumbing
+import vds_baseline as vds
+
+N = 3
+SCRIPTS = [gh, lp, vds]
+
+
+# ------------------------------------------------------------------------------------------------
+# A cycle spends exactly its worker's budget
+# ------------------------------------------------------------------------------------------------
+def run_with_cycle(module, monkeypatch, segments_of_worker: dict[int, int]):
+    """A two-worker run whose sampler's cycle asks worker i for segments_of_worker[i] segments, whatever its
+    budget (2); segments are made up (no physics, no network)."""
+    run = module.Run(module.Args(n_blocks=N, segment_len=4, stable_steps=2, n_segments=2, num_envs=2), "cpu")
+    goal = int(og.OracleGraph(N).masks[1])
+
+    def cycle(w):
+        for _ in range(segments_of_worker[w.index]):
+            yield module.Request(goal, deterministic=False)
+
+    def segments(agent, workers, requests):
+        ag = [np.tile(og.from_mask(r.goal, N), (5, 1)) for r in requests]
+        return [module.Segment(np.zeros((5, 10 + 15 * N), np.float32), a, a[-1], np.zeros((4, 4), np.float32),
+                               True, True) for a in ag]  # fmt: skip
+
+    monkeypatch.setattr(run.sampler, "cycle", cycle)
+    monkeypatch.setattr(module, "run_segments", segments)
+    return run
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+@pytest.mark.parametrize("spent", [1, 3])
+def test_a_cycle_that_does_not_spend_its_budget_stops_the_run_naming_the_sampler_and_the_worker(
+    module, monkeypatch, spent
+):
+    run = run_with_cycle(module, monkeypatch, {0: 2, 1: spent})
+    with pytest.raises(SystemExit) as e:
+        module.run_cycle(run)
+    message = str(e.value.code)
+    assert len(message.splitlines()) == 1
+    assert f"GoalSampler.cycle spent {spent} of worker 1's 2 segments" in message
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_a_cycle_that_spends_its_budget_passes_the_check(module, monkeypatch):
+    run = run_with_cycle(module, monkeypatch, {0: 2, 1: 2})
+    assert [len(segments) for segments in module.run_cycle(run)] == [2, 2]
+
+
+# ------------------------------------------------------------------------------------------------
+# The CPU kernels implement MLP as written; --plain
+# ------------------------------------------------------------------------------------------------
+def spy_on_kernels(monkeypatch) -> list[str]:
+    """The names of plumbing's kernels as the update calls them."""
+    calls = []
+    for name in ("NodeNet", "EdgeMax", "Head"):
+        kernel = getattr(plumbing, name)
+        monkeypatch.setattr(kernel, "apply", lambda *a, _apply=kernel.apply, _n=name: calls.append(_n) or _apply(*a))
+    return calls
+
+
+def one_update(module, args) -> torch.nn.Module:
+    agent = module.SAC(args, 10 + 15 * N, torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    dim, obs_dim, T = og.config_dim(N), 10 + 15 * N, 6
+    buf = module.ReplayBuffer(1, 4, T, obs_dim, dim)
+    configs = lambda *shape: rng.choice(np.int8([-1, 1]), size=shape)  # noqa: E731
+    obs = rng.normal(size=(1, 4, T + 1, obs_dim)).astype(np.float32)
+    buf.store(obs, configs(1, 4, T + 1, dim), configs(1, 4, dim), rng.uniform(-1, 1, (1, 4, T, 4)))
+    agent.normalizer.update(obs)
+    agent.update(buf.sample(32, [rng], 0.8, "final"))
+    return agent
+
+
+def tanh_mlp(self, x):
+    """A fork's MLP: tanh in place of the first ReLU (its update, off the kernels, runs this too)."""
+    x = F.linear(torch.tanh(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
+    return F.relu(x) if self.out_relu else x
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_the_update_runs_the_cpu_kernels_on_the_nets_they_implement(module, monkeypatch):
+    calls = spy_on_kernels(monkeypatch)
+    agent = one_update(module, module.Args(n_blocks=N))
+    assert agent.kernels and {"NodeNet", "EdgeMax", "Head"} <= set(calls)
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_a_fork_that_changes_mlp_gets_the_plain_nets_said_in_one_line(module, monkeypatch, capsys):
+    monkeypatch.setattr(module.MLP, "forward", tanh_mlp)
+    calls = spy_on_kernels(monkeypatch)
+    agent = one_update(module, module.Args(n_blocks=N))
+    out = capsys.readouterr().out
+    assert not agent.kernels and len(out.strip().splitlines()) == 1 and "CPU kernels off" in out
+    calls.clear()
+    agent.update(agent_batch(agent))
+    assert calls == []  # the update ran the fork's nets, not the kernels
+
+
+def agent_batch(agent) -> dict:
+    rng = np.random.default_rng(1)
+    dim, obs_dim, T = og.config_dim(N), 10 + 15 * N, 6
+    buf = gh.ReplayBuffer(1, 2, T, obs_dim, dim)
+    configs = lambda *shape: rng.choice(np.int8([-1, 1]), size=shape)  # noqa: E731
+    buf.store(rng.normal(size=(1, 2, T + 1, obs_dim)), configs(1, 2, T + 1, dim), configs(1, 2, dim),
+              rng.uniform(-1, 1, (1, 2, T, 4)))  # fmt: skip
+    return buf.sample(16, [rng], 0.8, "final")
+
+
+def test_a_fork_that_changes_an_aggregation_gets_the_plain_nets(monkeypatch, capsys):
+    def mean_over_edges(net, edges, n):  # a fork's message passing: mean in place of max, kernels untouched
+        if gh.fused(edges):
+            return plumbing.fused_edge_max(edges, *net.params(), n, gh.update_products.dtype)
+        m = net(edges)
+        return m.reshape(len(m), n, n - 1, m.shape[-1]).mean(dim=2)
+
+    monkeypatch.setattr(gh, "edge_max", mean_over_edges)
+    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).kernels
+    assert "CPU kernels off" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_plain_turns_every_speed_trick_off(module, monkeypatch):
+    freed = []
+    monkeypatch.setattr(module, "keep_freed_memory", lambda: freed.append(True))
+    calls = spy_on_kernels(monkeypatch)
+    agent = one_update(module, module.Args(n_blocks=N, plain=True))
+    assert not agent.kernels and calls == [] and freed == []
+    assert not agent.actor_opt.defaults["fused"] and not agent.critic_opt.defaults["fused"]
+    fast = one_update(module, module.Args(n_blocks=N))
+    assert fast.actor_opt.defaults["fused"] and fast.critic_opt.defaults["fused"] and freed == [True]
+
+
+@pytest.mark.parametrize("flags, named", [(["--compile"], "--compile"), (["--precision", "bf16"], "--precision bf16")])
+def test_plain_refuses_the_speed_flags_in_one_line(monkeypatch, capsys, flags, named):
+    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
+    with pytest.raises(SystemExit) as e:
+        plumbing.parse_args(gh.Args, gh.check_sampler_args, ["--plain", *flags])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and "--plain" in err and named in err
