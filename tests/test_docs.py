@@ -1,0 +1,120 @@
+"""The project explains itself from its own files: every "SPEC §N" is a section of docs/SPEC.md, every page or
+section a file names exists, and no text points outside the repository or speaks of how the project was made
+(a tracker's numbers, its working sessions) rather than of its commits, versions and sections."""
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SPEC = ROOT / "docs" / "SPEC.md"
+TEXT = {".py", ".md", ".txt", ".toml", ".json", ".csv", ".xml", ".cfg", ".yml", ".yaml", ".gitignore", ""}
+
+
+IGNORED = {".git", "runs", "videos", "__pycache__", ".pytest_cache", ".ruff_cache", ".hypothesis", ".venv"}
+
+
+def project_texts() -> dict[str, str]:
+    """path -> text of every file git knows of (tracked, or untracked but not ignored) that is text; outside a
+    git checkout (a copy of the files, as benchmarks/mutations.py makes), every file but .gitignore's."""
+    if (ROOT / ".git").exists():
+        listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                                capture_output=True, text=True, check=True).stdout.splitlines()  # fmt: skip
+    else:
+        listed = [p.relative_to(ROOT).as_posix() for p in ROOT.rglob("*")
+                  if not IGNORED & set(p.relative_to(ROOT).parts)]  # fmt: skip
+    texts = {}
+    for name in listed:
+        path = ROOT / name
+        if path.suffix in TEXT and path.is_file():
+            texts[name] = path.read_text(encoding="utf-8", errors="replace")
+    return texts
+
+
+def spec_sections() -> list[str]:
+    """The section numbers of docs/SPEC.md, from its headings `## N. Title` and `### N.M Title`."""
+    return re.findall(r"^#{2,3} (\d+(?:\.\d+)?)\.? ", SPEC.read_text(), flags=re.MULTILINE)
+
+
+def test_docs_spec_numbers_its_sections_1_to_13_in_order_with_4_1_and_7_1():
+    sections = spec_sections()
+    top = [s for s in sections if "." not in s]
+    assert top == [str(i) for i in range(1, 14)]
+    assert {"4.1", "7.1"} <= set(sections)
+    assert sections == sorted(sections, key=lambda s: [int(x) for x in s.split(".")])
+
+
+def test_every_section_sign_in_the_project_is_a_section_of_docs_spec():
+    sections = set(spec_sections())
+    bad = [f"{name}:{text[: m.start()].count(chr(10)) + 1}: §{m.group(1)}"
+           for name, text in project_texts().items()
+           for m in re.finditer(r"§(\d+(?:\.\d+)?)", text) if m.group(1) not in sections]  # fmt: skip
+    assert not bad, f"{len(bad)} references to no section of docs/SPEC.md: {bad[:10]}"
+
+
+# What a user cannot follow: a tracker's numbers, the working sessions and their helpers, files beside the
+# repository. (This file names them, so it is the one file not read.)
+LOOSE = [
+    r"\bissues?\s*#?\d",
+    r"\bissue:",
+    r"\btasks?\s+\d",
+    r"\bsessions?\b",
+    r"\bhelpers?\b",
+    r"\bsubagents?\b",
+    r"\bshared folder\b",
+    r"\.\./shared\b",
+    r"\bSTYLE\.md\b",
+    r"(?<![\w/])SPEC\.md\b",  # the specification is docs/SPEC.md
+]
+
+
+def test_no_text_names_issues_sessions_or_helpers_or_points_outside_the_repository():
+    this = Path(__file__).relative_to(ROOT).as_posix()
+    bad = []
+    for name, text in project_texts().items():
+        if name == this:
+            continue
+        for pattern in LOOSE:
+            for m in re.finditer(pattern, text, flags=re.IGNORECASE):
+                if pattern.startswith("(?<![") and name.startswith("docs/"):
+                    continue  # a page beside SPEC.md names it by its file name
+                bad.append(f"{name}:{text[: m.start()].count(chr(10)) + 1}: {m.group(0)!r}")
+    assert not bad, f"{len(bad)} loose references: {bad[:15]}"
+
+
+def headings(path: Path) -> list[str]:
+    return [line.lstrip("#").strip() for line in path.read_text().splitlines() if re.match(r"#{1,6} ", line)]
+
+
+def test_every_docs_page_and_section_named_in_the_project_exists():
+    bad = []
+    for name, text in project_texts().items():
+        for m in re.finditer(r"\b(docs/[\w.-]+\.md|README(?:\.md)?)(?:,? (?:section|sections)?\s*\"([^\"]+)\")?", text):
+            page = ROOT / (m.group(1) if m.group(1).startswith("docs/") else "README.md")
+            if not page.is_file():
+                bad.append(f"{name}: {m.group(0)!r} (no such page)")
+            elif m.group(2) and not any(m.group(2).lower() in h.lower() for h in headings(page)):
+                bad.append(f"{name}: {m.group(0)!r} (no such section)")
+    assert not bad, bad[:10]
+
+
+@pytest.mark.parametrize("page", ["README.md", *sorted(p.relative_to(ROOT).as_posix() for p in ROOT.glob("docs/*.md"))])
+def test_every_relative_link_of_a_page_reaches_a_file_in_the_repository(page):
+    text, here = (ROOT / page).read_text(), (ROOT / page).parent
+    bad = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue  # a web address, or a place in this page
+        path = (here / target.split("#")[0]).resolve()
+        if not path.exists() or ROOT not in path.parents and path != ROOT:
+            bad.append(target)
+    assert not bad, f"{page}: links to nothing in the repository: {bad}"
+
+
+def test_the_readme_is_short_and_opens_with_the_two_commands():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 300
+    commands = re.findall(r"^pip install -r requirements.txt && (.+)$", text, flags=re.MULTILINE)
+    assert commands[:2] == ["python gangstr_hme.py --sp-ratio 0.2", "python -m pytest"]
