@@ -27,8 +27,10 @@ from gymnasium import spaces
 
 import oracle_graph as og
 
-# Bump ENV_VERSION whenever the physics or the observations change (what a policy sees or does): the
-# training scripts store it in their checkpoints and refuse one trained on another version.
+# Bump ENV_VERSION whenever the scene, its physics parameters or the observations change (what a policy
+# sees or does): the training scripts store it in their checkpoints and refuse one trained on another
+# version. A new MuJoCo release changes no ENV_VERSION: checkpoints record the MuJoCo, Gymnasium, numpy and
+# torch versions instead, and --resume under other ones says so in one line (plumbing.library_versions).
 # 1: first release; 2: Fetch's finger offset, contact and limit parameters, mat2euler angles, workspace;
 # 3: Fetch's finger inertials, so that the gripper resists rotation as Fetch's does (SPEC §3).
 ENV_VERSION = 3

@@ -541,11 +541,37 @@ def script_of(Args: type) -> str:
     return Path(inspect.getfile(Args)).stem
 
 
+def library_versions() -> dict[str, str]:
+    """The versions of the libraries a run's numbers depend on: MuJoCo's physics, Gymnasium's seeding, numpy's
+    random streams and torch's arithmetic. A checkpoint records them (its ENV_VERSION names the scene alone)."""
+    import gymnasium  # noqa: PLC0415 (fetch5_env's import: loaded already)
+    import mujoco  # noqa: PLC0415
+
+    versions = dict(mujoco=mujoco.__version__, gymnasium=gymnasium.__version__, numpy=np.__version__,
+                    torch=torch.__version__)  # fmt: skip
+    return {name: str(v) for name, v in versions.items()}  # plain strings (torch's is a str subclass)
+
+
+def version_warning(state: dict) -> str | None:
+    """One line if the checkpoint was written under other library versions than these (a warning: the run
+    goes on, but cannot repeat the uninterrupted one exactly); None if the same, or not recorded (older
+    checkpoints)."""
+    saved, now = state.get("versions"), library_versions()
+    if not isinstance(saved, dict):
+        return None
+    changed = [f"{name} {saved[name]} -> {now[name]}" for name in now if name in saved and saved[name] != now[name]]
+    if not changed:
+        return None
+    return (f"warning: --resume: the checkpoint was written under other library versions ({', '.join(changed)}): "
+            "the run goes on, but will not repeat the uninterrupted one exactly")  # fmt: skip
+
+
 def save_state(run) -> dict:
     """Everything the rest of the run depends on (SPEC §10): a resumed run is the uninterrupted one."""
     agent, learner = run.learner.agent, run.learner
     state = dict(
-        script=script_of(type(run.args)), env_version=ENV_VERSION, args=dataclasses.asdict(run.args),
+        script=script_of(type(run.args)), env_version=ENV_VERSION, versions=library_versions(),
+        args=dataclasses.asdict(run.args),
         counters=dict(epoch=run.epoch, cycle=run.cycle, segments=learner.segments, goals=run.sampler.goals,
                       n_updates=agent.n_updates),
         epoch_so_far=dict(tally=copy.deepcopy(run.tally), stats=plain(run.sampler.stats),
@@ -1129,6 +1155,8 @@ class RunFolder:
         if state is not None:
             restore(run, state, args.resume, "--resume")
             progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
+            if (warning := version_warning(state)) and rank() == 0:
+                print(warning, file=sys.stderr, flush=True)
         if init is not None:  # before the folder: a file that does not fit exits 2 with nothing written
             load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
         if state is not None:

@@ -783,6 +783,23 @@ def test_a_run_resumed_from_an_older_versions_checkpoint_logs_every_column_under
     assert new["epoch"] == "1" and int(new["segments"]) == 2 * int(old["segments"])  # its own columns, aligned
 
 
+def test_a_run_resumed_under_other_library_versions_says_so_in_one_line_and_goes_on(tmp_path):
+    assert run_script(*RESUME, "--n-epochs", "1", runs_dir=tmp_path).returncode == 0
+    (run,) = tmp_path.iterdir()
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["versions"] == plumbing.library_versions() and plumbing.version_warning(state) is None
+    assert set(state["versions"]) == {"mujoco", "gymnasium", "numpy", "torch"}
+    state["versions"]["mujoco"] = "3.0.0"
+    plumbing.save_checkpoint(state, run / "checkpoint.pt")
+    out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path)
+    assert out.returncode == 0, out.stderr
+    (warning,) = [line for line in out.stderr.splitlines() if "warning" in line]
+    assert f"mujoco 3.0.0 -> {plumbing.library_versions()['mujoco']}" in warning and "gymnasium" not in warning
+    assert len(read_rows(run)) == 2  # a warning, not a refusal
+    del state["versions"]  # a checkpoint from before versions were recorded: nothing to compare
+    assert plumbing.version_warning(state) is None
+
+
 STOPPED = [*RESUME, "--sp-ratio", "0.3", "--n-cycles", "3", "--n-epochs", "6"]  # with the partner: more draws
 
 
