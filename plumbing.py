@@ -347,12 +347,17 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
 def check_budgets(run):
     """After a cycle: every worker spent exactly its budget of segments (a cycle spends all of w.left, Sampler).
     Otherwise stop now, naming the sampler and the worker: with one worker a short cycle would silently store
-    fewer segments, with several the replays would fail to stack far from the cause."""
+    fewer segments, with several the replays would fail to stack far from the cause. (A cycle that asks for
+    more is stopped by the driver at the first segment too many: budget_error.)"""
     for w in run.workers:
         if w.left != 0:
             n = run.args.n_segments
-            sys.exit(f"error: {type(run.sampler).__name__}.cycle spent {n - w.left} of worker {w.index}'s {n} "
-                     "segments this cycle; a cycle spends exactly w.left (see Sampler)")  # fmt: skip
+            budget_error(f"{type(run.sampler).__name__}.cycle", f"spent {n - w.left} of worker {w.index}'s {n}")
+
+
+def budget_error(program: str, what: str):
+    """Stop the run with one line: what `program` (a sampler's cycle) did with a worker's segments."""
+    sys.exit(f"error: {program} {what} segments this cycle; a cycle spends exactly w.left (see Sampler)")
 
 
 def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
@@ -476,13 +481,14 @@ class EdgeMax(torch.autograd.Function):
         return None, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g), None, None
 
 
-def kernels_compute(losses, update_products, n_blocks: int) -> bool:
+def kernels_compute(losses, update_products, n_blocks: int, params: list[torch.Tensor]) -> bool:
     """Whether the kernels above compute a script's SAC losses (its SAC.losses) as its plain nets do, on a small
-    batch of random inputs: the losses and TD targets within update_products(fp32, kernels) and without the
-    kernels, equal up to float rounding. The kernels implement the scripts' MLP as written (Linear -> ReLU ->
-    Linear (-> ReLU), max over edges, sum over nodes); a fork that changes MLP or an aggregation changes the
-    plain nets alone. Then False, said in one line: the update runs the plain nets. Draws from its own
-    generator (the run's random streams are untouched) and changes no weight."""
+    batch of random inputs: the losses, TD targets and the gradients of the networks' weights `params`, within
+    update_products(fp32, kernels) and without the kernels, equal up to float rounding. The kernels implement
+    the scripts' MLP as written (Linear -> ReLU -> Linear (-> ReLU), max over edges, sum over nodes); a fork
+    that changes MLP or an aggregation changes the plain nets alone. Then False, said in one line: the update
+    runs the plain nets. Draws from its own generator (the run's random streams are untouched) and changes no
+    weight or gradient."""
     gen = torch.Generator().manual_seed(0)
     rows, obs_dim, dim = 16, fetch5_env.obs_size(n_blocks), og.config_dim(n_blocks)
     normal = lambda *shape: torch.randn(*shape, generator=gen)  # noqa: E731
@@ -495,10 +501,13 @@ def kernels_compute(losses, update_products, n_blocks: int) -> bool:
         try:
             with update_products(torch.float32, kernels):
                 critic_loss, actor_loss, target, _ = losses(batch)
-            values.append(torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target]))
+            grads = torch.autograd.grad(critic_loss + actor_loss, params, allow_unused=True)
+            grads = [torch.full((1,), math.nan) if g is None else g.reshape(-1) for g in grads]  # unused: nan
+            values.append(torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target, *grads]))
         except Exception as e:  # noqa: BLE001 (a net the kernels cannot run, of another shape: not theirs)
             values.append(e)
-    same = all(isinstance(v, torch.Tensor) for v in values) and torch.allclose(*values, rtol=1e-4, atol=1e-4)
+    same = all(isinstance(v, torch.Tensor) for v in values) and values[0].shape == values[1].shape
+    same = same and torch.allclose(*values, rtol=1e-4, atol=1e-4, equal_nan=True)
     if not same and rank() == 0:
         print("CPU kernels off: plumbing's kernels no longer compute this script's nets (MLP, node_sum or edge_max "
               "changed); the SAC update runs the plain nets", flush=True)  # fmt: skip
@@ -689,7 +698,8 @@ def checkpoint_error(flag: str, path: str, reason: str):
     sys.exit(2)
 
 
-RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "plain", "save_buffer", "resume")  # --resume may
+# What --resume may change:
+RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "plain", "save_buffer", "resume")
 # --eval-only's own; among them precision: acting never computes in bf16 (update_products), so a run trained
 # in bf16 is evaluated in fp32 unless the flag says otherwise, where bf16 is slow too.
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",

@@ -1,4 +1,5 @@
-# Docs: README.md, section "Baselines"; every number: SPEC §5, §6, §8-§12; paper Section 4.2.
+# Docs: docs/training.md, section "Baselines: lp_baseline.py, vds_baseline.py"; paper Section 4.2;
+# every number: SPEC §5, §6, §8-§12.
 """GANGSTR with a value-disagreement goal sampler (the paper's VDS baseline), in one file.
 
 The same learner as gangstr_hme.py (GNN SAC+HER, semantic graph, decomposition, evaluation, outputs);
@@ -131,7 +132,7 @@ class Args:
     precision: str = "fp32"
     """the update's large products: 'fp32' or 'bf16' (bf16 products; weights, losses, targets fp32: docs/speed.md)"""
     plain: bool = False
-    """every speed trick off: the update on the plain nets (no CPU kernels), Adam unfused, glibc's memory default"""
+    """the update's speed tricks off: the plain nets (no CPU kernels), Adam unfused, glibc's memory default"""
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
     init_from: str = ""
@@ -139,7 +140,7 @@ class Args:
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     freeze_normalizer: bool = False
-    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/results.md)"""
+    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md)"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     runs_dir: str = "runs"
@@ -150,15 +151,17 @@ class Args:
 # The GNN actor-critic (SPEC §5; paper appendix "Object-centered architecture")
 # ------------------------------------------------------------------------------------------------
 BODY, PER_BLOCK, MSG = 10, 15, 24  # body features, features per block, message size
-# The node nets' output widths: the authors' code's, which loading the paper's trained agent needs (SPEC §5).
+# The node nets' output widths: the authors' code's, 3 x their input widths (3 x 49, 3 x 53), which loading
+# the paper's trained agent needs (SPEC §5).
 ACTOR_NODE_OUT, CRITIC_NODE_OUT = 147, 159
 
 
 class MLP(nn.Module):
-    """Linear -> ReLU -> Linear (-> ReLU), the shape of every net in SPEC §5. One module with a
-    functional forward rather than an nn.Sequential of four: acting runs these nets on one observation,
-    where each extra module call costs about as much as the small matmul it wraps. `large`: a net run on
-    every edge or node (message and node nets), whose products --precision bf16 computes in bf16."""
+    """Linear -> ReLU -> Linear (-> ReLU), the shape of every net in SPEC §5, written once for acting and
+    updates. One module with a functional forward rather than an nn.Sequential of four: acting runs these
+    nets on one observation, where each extra module call costs about as much as the small matmul it wraps.
+    `large`: a net run on every edge or node (message and node nets), whose products --precision bf16
+    computes in bf16. A fork may change it: plumbing's CPU kernels then step aside (see fused)."""
 
     def __init__(self, n_in: int, n_hidden: int, n_out: int, out_relu: bool = True, large: bool = False):
         super().__init__()
@@ -166,14 +169,12 @@ class MLP(nn.Module):
         self.large = large
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if update_products.dtype is None:  # acting (and a plain reference): fp32
-            x = F.linear(F.relu(F.linear(x, self.hidden.weight, self.hidden.bias)), self.out.weight, self.out.bias)
-            return F.relu(x) if self.out_relu else x
         if fused(x) and not self.out_relu:  # a head in an update on the CPU: plumbing's kernel (see fused)
             return plumbing.Head.apply(x, *self.params())
-        dtype = update_products.dtype if self.large else torch.float32  # the update's, off the CPU
-        w1, b1, w2, b2 = (p.to(dtype) for p in self.params())
-        x = F.linear(F.relu(F.linear(x.to(dtype), w1, b1)), w2, b2)
+        w1, b1, w2, b2 = self.params()
+        if self.large and update_products.dtype not in (None, torch.float32):  # --precision bf16, in an update
+            x, w1, b1, w2, b2 = (t.to(update_products.dtype) for t in (x, w1, b1, w2, b2))
+        x = F.linear(F.relu(F.linear(x, w1, b1)), w2, b2)
         return F.relu(x) if self.out_relu else x
 
     def params(self) -> tuple[torch.Tensor, ...]:
@@ -439,7 +440,8 @@ class SAC:
         self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
         self.kernels = self.device.type == "cpu" and not args.plain  # plumbing's CPU kernels (see fused)
         if self.kernels:
-            self.kernels = plumbing.kernels_compute(self.losses, update_products, args.n_blocks)
+            nets = [*self.actor.parameters(), *self.critic.parameters()]
+            self.kernels = plumbing.kernels_compute(self.losses, update_products, args.n_blocks, nets)
         if self.device.type == "cpu" and not args.plain:
             keep_freed_memory()
 
@@ -872,10 +874,11 @@ def pursue(learner: Learner, w: Worker, goal: int, explore: bool, deterministic:
 
 
 # --- the driver: every worker's program in lockstep (SPEC §11) ------------------------------------
-def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator]):
+def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator], name: str = "evaluation"):
     """Run one program per worker (a generator of Requests that receives each finished Segment) until
     all are done. Each round, every worker with a request gets its segment, all stepped together;
-    each segment goes to its worker's list."""
+    each segment goes to its worker's list. A program that asks for more than its worker's budget (w.left)
+    stops the run, named `name`."""
     requests = {}
 
     def advance(w, segment):
@@ -896,6 +899,8 @@ def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator]):
             for w, segment in zip(workers, segments, strict=True):
                 w.segments.append(segment)
                 w.left -= 1
+                if w.left < 0:  # a forked cycle that ignores its budget: stop it now, not after it (never) ends
+                    plumbing.budget_error(name, f"asked for more than worker {w.index}'s")
                 advance(w, segment)
     finally:
         torch.set_num_threads(threads)
@@ -1257,7 +1262,7 @@ def run_cycle(run: Run) -> list[list[Segment]]:
     is merged (SPEC §11). Each worker's segments."""
     for w in run.workers:
         w.left, w.segments = run.args.n_segments, []
-    drive(run.learner.agent, {w: run.sampler.cycle(w) for w in run.workers})
+    drive(run.learner.agent, {w: run.sampler.cycle(w) for w in run.workers}, f"{type(run.sampler).__name__}.cycle")
     plumbing.check_budgets(run)  # each worker spent exactly its segments (a forked sampler may not)
     run.sampler.after_cycle()
     return [w.segments for w in run.workers]

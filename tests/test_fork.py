@@ -3,6 +3,8 @@ too few or too many of a cycle's segments is stopped at once, naming itself and 
 contract); a changed MLP takes the update off the CPU kernels, which implement the nets as written; --plain
 turns every speed trick off."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -28,7 +30,9 @@ def run_with_cycle(module, monkeypatch, segments_of_worker: dict[int, int]):
     goal = int(og.OracleGraph(N).masks[1])
 
     def cycle(w):
-        for _ in range(segments_of_worker[w.index]):
+        asked = 0
+        while asked < segments_of_worker[w.index]:
+            asked += 1
             yield module.Request(goal, deterministic=False)
 
     def segments(agent, workers, requests):
@@ -42,16 +46,21 @@ def run_with_cycle(module, monkeypatch, segments_of_worker: dict[int, int]):
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
-@pytest.mark.parametrize("spent", [1, 3])
+@pytest.mark.parametrize(
+    "spent, said",
+    [(1, "spent 1 of worker 1's 2 segments"), (3, "asked for more than worker 1's segments"),
+     (math.inf, "asked for more than worker 1's segments")],  # a cycle that never ends: stopped at once
+    ids=["too-few", "too-many", "endless"],
+)  # fmt: skip
 def test_a_cycle_that_does_not_spend_its_budget_stops_the_run_naming_the_sampler_and_the_worker(
-    module, monkeypatch, spent
+    module, monkeypatch, spent, said
 ):
     run = run_with_cycle(module, monkeypatch, {0: 2, 1: spent})
     with pytest.raises(SystemExit) as e:
         module.run_cycle(run)
     message = str(e.value.code)
     assert len(message.splitlines()) == 1
-    assert f"GoalSampler.cycle spent {spent} of worker 1's 2 segments" in message
+    assert f"GoalSampler.cycle {said} this cycle" in message
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
@@ -128,6 +137,18 @@ def test_a_fork_that_changes_an_aggregation_gets_the_plain_nets(monkeypatch, cap
         return m.reshape(len(m), n, n - 1, m.shape[-1]).mean(dim=2)
 
     monkeypatch.setattr(gh, "edge_max", mean_over_edges)
+    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).kernels
+    assert "CPU kernels off" in capsys.readouterr().out
+
+
+def test_a_fork_whose_mlp_computes_the_same_values_but_other_gradients_gets_the_plain_nets(monkeypatch, capsys):
+    def detached_hidden(self, x):  # the message and node nets' values, but no gradient to their first layers
+        w1, b1, w2, b2 = self.params()
+        h = F.relu(F.linear(x, w1, b1))
+        x = F.linear(h.detach() if self.large else h, w2, b2)
+        return F.relu(x) if self.out_relu else x
+
+    monkeypatch.setattr(gh.MLP, "forward", detached_hidden)
     assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).kernels
     assert "CPU kernels off" in capsys.readouterr().out
 
