@@ -126,7 +126,7 @@ MUTATIONS = [
     Mutation("docs: a section of a page that does not exist", G, 'section "How to read gangstr_hme.py beside',
              'section "How to run gangstr_hme.py beside', "tests/test_docs.py -k page_and_section"),
     Mutation("docs: a loose reference to a tracker", G, "update 1.06-1.11x that of commit 25d2c6b",
-             "update 1.06-1.11x iss" "ue 25's", "tests/test_docs.py -k names_issues"),
+             "update 1.06-1.11x iss" "ue 25's", "tests/test_docs.py -k loose_references"),
     Mutation("docs: a page that does not exist", G, "(a speed trick, docs/speed.md: the",
              "(a speed trick, docs/sp" "eeds.md: the", "tests/test_docs.py -k page_and_section"),
     # --- mutations the suite used to miss -------------------------------------------------------

@@ -81,16 +81,21 @@ def spy_on_kernels(monkeypatch) -> list[str]:
     return calls
 
 
-def one_update(module, args) -> torch.nn.Module:
-    agent = module.SAC(args, 10 + 15 * N, torch.device("cpu"))
-    rng = np.random.default_rng(0)
+def random_batch(agent, seed: int = 0) -> dict:
+    """A HER batch of 32 from a replay of 4 made-up segments; the agent's normalizer fitted to them."""
+    rng = np.random.default_rng(seed)
     dim, obs_dim, T = og.config_dim(N), 10 + 15 * N, 6
-    buf = module.ReplayBuffer(1, 4, T, obs_dim, dim)
+    buf = gh.ReplayBuffer(1, 4, T, obs_dim, dim)
     configs = lambda *shape: rng.choice(np.int8([-1, 1]), size=shape)  # noqa: E731
     obs = rng.normal(size=(1, 4, T + 1, obs_dim)).astype(np.float32)
     buf.store(obs, configs(1, 4, T + 1, dim), configs(1, 4, dim), rng.uniform(-1, 1, (1, 4, T, 4)))
     agent.normalizer.update(obs)
-    agent.update(buf.sample(32, [rng], 0.8, "final"))
+    return buf.sample(32, [rng], 0.8, "final")
+
+
+def one_update(module, args) -> torch.nn.Module:
+    agent = module.SAC(args, 10 + 15 * N, torch.device("cpu"))
+    agent.update(random_batch(agent))
     return agent
 
 
@@ -115,18 +120,8 @@ def test_a_fork_that_changes_mlp_gets_the_plain_nets_said_in_one_line(module, mo
     out = capsys.readouterr().out
     assert not agent.kernels and len(out.strip().splitlines()) == 1 and "CPU kernels off" in out
     calls.clear()
-    agent.update(agent_batch(agent))
+    agent.update(random_batch(agent, seed=1))
     assert calls == []  # the update ran the fork's nets, not the kernels
-
-
-def agent_batch(agent) -> dict:
-    rng = np.random.default_rng(1)
-    dim, obs_dim, T = og.config_dim(N), 10 + 15 * N, 6
-    buf = gh.ReplayBuffer(1, 2, T, obs_dim, dim)
-    configs = lambda *shape: rng.choice(np.int8([-1, 1]), size=shape)  # noqa: E731
-    buf.store(rng.normal(size=(1, 2, T + 1, obs_dim)), configs(1, 2, T + 1, dim), configs(1, 2, dim),
-              rng.uniform(-1, 1, (1, 2, T, 4)))  # fmt: skip
-    return buf.sample(16, [rng], 0.8, "final")
 
 
 def test_a_fork_that_changes_an_aggregation_gets_the_plain_nets(monkeypatch, capsys):
