@@ -116,5 +116,9 @@ def test_every_relative_link_of_a_page_reaches_a_file_in_the_repository(page):
 def test_the_readme_is_short_and_opens_with_the_two_commands():
     text = (ROOT / "README.md").read_text()
     assert len(text.splitlines()) <= 300
-    commands = re.findall(r"^pip install -r requirements.txt && (.+)$", text, flags=re.MULTILINE)
+    commands = re.findall(
+        r"^python -m venv .venv && \. .venv/bin/activate && pip install -r requirements.txt && (.+)$",
+        text,
+        flags=re.MULTILINE,
+    )
     assert commands[:2] == ["python gangstr_hme.py --sp-ratio 0.2", "python -m pytest"]
