@@ -74,6 +74,12 @@ class Args:
     """what the social partner proposes: 'frontier-and-beyond' (the paper's), 'frontier' or 'beyond'"""
     internalization_prob: float = 0.5
     """probability that a non-social cycle rehearses a failed social proposal (0 = the 'NI' ablation)"""
+    ask_after: int = 0
+    """beyond the paper (SPEC §7.1): the learner asks the partner for help once its semantic graph has gained
+    no node for this many cycles (0 = it never asks: the coin, --sp-ratio, alone brings the partner)"""
+    help_cycles: int = 3
+    """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
+    social cycle that added no node to the semantic graph (the partner had nothing new to show)"""
     # --- schedule (SPEC §5) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
@@ -1048,9 +1054,10 @@ class Sampler:
 # The goal sampler: HME, the social partner and internalization (SPEC §7; paper Sections 3.1, 3.4)
 # ------------------------------------------------------------------------------------------------
 class GoalSampler(Sampler):
-    """HME (SPEC §7): each cycle is social with probability sp_ratio (the paper's Algorithm 2); otherwise
-    it rehearses a failed social proposal with probability internalization_prob, if there is one
-    (Algorithm 1's first branch), else it is autotelic (its second, Sampler.autotelic_cycle)."""
+    """HME (SPEC §7): each cycle is social with probability sp_ratio (the paper's Algorithm 2), or when the
+    learner has asked for help (asks_for_help, off by default); otherwise it rehearses a failed social
+    proposal with probability internalization_prob, if there is one (Algorithm 1's first branch), else it
+    is autotelic (its second, Sampler.autotelic_cycle)."""
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         super().__init__(args, learner, workers)
@@ -1061,13 +1068,21 @@ class GoalSampler(Sampler):
         self.partner_counts = [f"sp_{kind}_{k}" for kind in kinds for k in names]
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
+        # the learner's query (asks_for_help): the graph's size and the cycle it was read at, cycles without
+        # a new node, and the help given so far in a row (0: none asked)
+        self.query = dict(nodes=0, read_at=-1, stalled=0, helped=0)
 
     def cycle(self, w: Worker):
         args = self.args
         self.stats["cycles"] += 1
-        if args.sp_ratio > 0 and w.rng.random() < args.sp_ratio:  # --sp-ratio
+        helped = self.asks_for_help()  # the same answer for every worker: decided from what they share
+        coin = args.sp_ratio > 0 and w.rng.random() < args.sp_ratio  # --sp-ratio
+        if helped or coin:
             self.stats["social_cycles"] += 1
-            yield from self.social_cycle(w)
+            self.stats["help_cycles"] += helped
+            self.stats["queries"] += helped and self.query["helped"] == 1 and w.index == 0  # once, by worker 0
+            proposed = yield from self.social_cycle(w)
+            self.stats["help_nothing"] += helped and not proposed
         elif self.internalization_buffer and w.rng.random() < args.internalization_prob:  # --internalization-prob
             self.stats["rehearsal_cycles"] += 1
             yield from self.rehearsal_cycle(w)
@@ -1079,8 +1094,8 @@ class GoalSampler(Sampler):
         """Program, Algorithm 2: reset; the social partner proposes a frontier goal and the agent goes
         there; then goals just beyond, chained while they succeed; a failed one is internalized. When the
         partner has nothing to propose, the rest of the cycle is autotelic. The ablations (--strategy)
-        keep only the frontier leg or only a beyond goal."""
-        strategy, graph = self.args.strategy, self.learner.graph
+        keep only the frontier leg or only a beyond goal. Returns whether the partner proposed anything."""
+        strategy, graph, n_segments = self.args.strategy, self.learner.graph, w.left
         while w.left > 0:
             w.env.reset()
             self.goals += 1
@@ -1101,7 +1116,9 @@ class GoalSampler(Sampler):
                 yield from self.attempt_until_reached(w, self.sp.beyond_goal(graph, base, w.rng))
             if w.left == before:
                 break  # nothing to propose: the rest of the cycle is autotelic
+        proposed = w.left < n_segments
         yield from self.autotelic_cycle(w)
+        return proposed
 
     def proposed_frontier(self, w: Worker, frontier: int):
         """Program step: the partner's frontier goal, proposed, then gone to (go_to_frontier; already there
@@ -1165,6 +1182,33 @@ class GoalSampler(Sampler):
             if arrived and w.left > 0:
                 yield Request(beyond, deterministic=False)
 
+    # --- beyond the paper: the learner asks for help (SPEC §7.1; the paper's Conclusion) -------------
+    def asks_for_help(self) -> bool:
+        """Whether this cycle is help the learner asked for (--ask-after, --help-cycles). The paper ends on
+        "an automatic competence-based query mechanism from the learner"; this one reads only the learner's
+        own semantic graph (never the oracle or the stepping stones, which only the partner sees):
+          - stalled: cycles in a row whose segments added no node to the graph (SPEC §6);
+          - once stalled reaches ask_after, the learner asks (a query): the next cycle is social;
+          - the help goes on, one social cycle after another, while each adds a node to the graph, for
+            help_cycles cycles at most; then stalled counts again from 0.
+        The graph is the same in every process (SPEC §11), so every worker gets the same answer, and no
+        random draw is made: the coin's stream (--sp-ratio) is unchanged. Read once a cycle, by the first
+        worker to start it (the graph has learnt from the previous cycle by then)."""
+        q, args, graph = self.query, self.args, self.learner.graph
+        if args.ask_after == 0:
+            return False
+        if q["read_at"] != self.learner.segments:  # a new cycle: the previous one's outcome is in the graph
+            q["read_at"], grew, q["nodes"] = self.learner.segments, graph.n_nodes > q["nodes"], graph.n_nodes
+            if q["helped"] and grew and q["helped"] < args.help_cycles:
+                q["helped"] += 1  # the help goes on
+            elif q["helped"]:
+                q["helped"] = q["stalled"] = 0  # the help is over
+            else:
+                q["stalled"] = 0 if grew else q["stalled"] + 1
+                if q["stalled"] >= args.ask_after:
+                    q["helped"] = 1  # the query
+        return q["helped"] > 0
+
     # --- bookkeeping: logs, what workers share, checkpoints ---------------------------------------
     def count(self, kind: str, goal: int):
         """One of the partner's goals in its class: proposed ('frontier', 'beyond'), or the agent reached
@@ -1182,24 +1226,33 @@ class GoalSampler(Sampler):
             w.new_pairs = []
 
     def epoch_stats(self) -> dict:
-        """Besides autotelic success: the share of social and rehearsal cycles, stepping stones left, the
-        number of distinct internalized pairs, the partner's proposals per class (frontier and beyond) and
-        those the agent reached."""
-        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *self.partner_counts])
+        """Besides autotelic success: the share of social and rehearsal cycles, the learner's queries (the
+        social cycles they brought, those in which the partner had nothing to propose, and the cycles
+        without a new node at the epoch's end), stepping stones left, the number of distinct internalized
+        pairs, the partner's proposals per class (frontier and beyond) and those the agent reached."""
+        queries = ["queries", "help_cycles", "help_nothing"]
+        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *queries, *self.partner_counts])
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
             social_share=counts["social_cycles"] / cycles,
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
+            **{k: counts[k] for k in queries},  # the learner's query (asks_for_help): counts this epoch
+            stalled_cycles=self.query["stalled"],  # its signal at the epoch's end
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
             **{k: counts[k] for k in self.partner_counts},
         )
 
     def state_dict(self) -> dict:
-        return dict(internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2))
+        return dict(
+            internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
+            query=torch.tensor(list(self.query.values()), dtype=torch.int64),
+        )
 
     def load_state_dict(self, s: dict):
         self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
+        if "query" in s:  # a checkpoint written before the learner could ask has none: it never asked
+            self.query = dict(zip(self.query, s["query"].tolist(), strict=True))
 
 
 STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
@@ -1212,6 +1265,10 @@ def check_sampler_args(a: Args) -> str | None:
     for name in ("sp_ratio", "internalization_prob"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
+    if a.ask_after < 0:
+        return f"--ask-after must be 0 (never ask) or more, got {a.ask_after}"
+    if a.help_cycles < 1:
+        return f"--help-cycles must be 1 or more, got {a.help_cycles}"
     return None
 
 
