@@ -12,10 +12,13 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
   encounters, and its success rate over time (first seed-mean of each condition that has proposals);
 - stepping_stones: the stepping stones left, per condition with a social partner;
 - discovered_per_class and agent_nodes, for runs that log the agent graph's nodes per class: per class, its
-  configurations that are agent-graph nodes; the graph's size.
+  configurations that are agent-graph nodes; the graph's size;
+- help_vs_discovery, for those runs: one point per run, social cycles in the run (x, log scale) against
+  the hard-class configurations discovered by its last epoch (y; HARD: S3, S2&S2, S2&S3, P3&S2, S4, S5).
 And tables.md, the same runs in numbers (Markdown): SR per class by epoch, the epoch at which each class
 first reaches 0.5, the distinct configs met by epoch, the social partner's proposals and what the agent
-reached of them; the configurations discovered per class (by epoch, first epoch, Welch's test at the end).
+reached of them; the configurations discovered per class (by epoch, first epoch, Welch's test at the end)
+and, per run, the help it had (social cycles, the learner's queries) beside the hard classes it opened.
 """
 
 from __future__ import annotations
@@ -56,8 +59,9 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
     try:  # the block count sets the class sizes; the seed names the run in the tables
         settings = json.loads(config.read_text())
         run["n_blocks"] = int(settings["n_blocks"])
-        if "seed" in settings:
-            run["seed"] = int(settings["seed"])
+        for key in ("seed", "n_segments"):  # n_segments: a cycle's segments, to count social cycles
+            if key in settings:
+                run[key] = int(settings[key])
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"cannot read n_blocks from {str(config)!r} ({type(e).__name__}: {e})") from None
     return run
@@ -259,6 +263,44 @@ def plot_discoveries(plt, conditions: dict, out: Path):
     plt.close(fig)
 
 
+# The hard classes: those the paper's agent, held fixed, discovers seldom or never without the partner
+# (docs/results.md, "What the partner opens: 5 blocks, the paper's agent").
+HARD = ("S3", "S2&S2", "S2&S3", "P3&S2", "S4", "S5")
+
+
+def social_cycles(run: dict) -> np.ndarray:
+    """Social cycles per epoch (every worker's): the social share of the epoch's cycles, whose count is its
+    segments over a cycle's (config.json's n_segments; 10, the default, if the file does not say)."""
+    cycles = np.diff(run["segments"], prepend=0.0) / run.get("n_segments", 10)
+    return np.rint(run["social_share"] * cycles)
+
+
+def hard_discovered(run: dict) -> np.ndarray:
+    """Hard-class configurations discovered (agent-graph nodes), by epoch."""
+    return sum(run[f"agent_nodes_{c}"] for c in HARD if f"agent_nodes_{c}" in run)
+
+
+def plot_help_vs_discovery(plt, conditions: dict, out: Path):
+    """Help against discovery: one point per run, x = social cycles in the run (symmetric log scale: 0 is
+    shown), y = hard-class configurations discovered by its last epoch; a marker per condition."""
+    markers = "osD^vP*Xh<>"
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for marker, (name, runs) in zip(markers * 4, conditions.items(), strict=False):
+        x = [social_cycles(r).sum() for r in runs]
+        y = [hard_discovered(r)[-1] for r in runs]
+        ax.scatter(x, y, marker=marker, s=45, alpha=0.8, label=f"{name} ({len(runs)} seeds)")
+    ax.set_xscale("symlog", linthresh=1)
+    ax.set_xlim(left=-0.3)
+    top = sum(len(v) for k, v in og.evaluation_classes(int(runs[0]["n_blocks"])).items() if k in HARD)
+    ax.axhline(top, color="grey", lw=0.8, ls="--")
+    ax.set(xlabel="social cycles in the run", ylabel=f"hard-class configs discovered (of {top})",
+           title="help vs discovery: " + ", ".join(c for c in HARD))  # fmt: skip
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    save(fig, out, "help_vs_discovery")
+    plt.close(fig)
+
+
 # ------------------------------------------------------------------------------------------------
 # Tables (Markdown, for docs/results.md)
 # ------------------------------------------------------------------------------------------------
@@ -366,6 +408,24 @@ def discovery_tables(
     out.append(f"\nFirst epoch at whose end the class has a discovered configuration (epochs 0-{n - 1}):\n")
     out.append(md_table(["run", *names], [[lab, *(first_found(r, c) for c in names)] for lab, r in labelled]))
 
+    hard = [c for c in HARD if c in names]
+    out.append(f"\nHelp and discovery per run (epochs 0-{n - 1}): social cycles, the learner's queries and its help "
+               "cycles in which the partner had nothing to propose (where logged), hard-class configurations "
+               "discovered at the end; per hard class, the first epoch with a discovered configuration and the "
+               "social cycles by its end:\n")  # fmt: skip
+
+    def first_help(r, cls):
+        found = np.flatnonzero(r[f"agent_nodes_{cls}"][:n] > 0)
+        return f"{int(found[0])} ({int(social_cycles(r)[: found[0] + 1].sum())})" if len(found) else "never"
+
+    def logged(r, k):
+        return str(int(np.nansum(r[k][:n]))) if k in r else "-"
+
+    rows = [[lab, str(int(social_cycles(r)[:n].sum())), logged(r, "queries"), logged(r, "help_nothing"),
+             str(int(hard_discovered(r)[n - 1])), *(first_help(r, c) for c in hard)]
+            for lab, r in labelled]  # fmt: skip
+    out.append(md_table(["run", "social cycles", "queries", "help, nothing proposed", "hard configs", *hard], rows))
+
     ref = reference if reference in conditions else next(iter(conditions))
     others = [c for c in conditions if c != ref]
     out.append(f"\nDiscovered at epoch {n - 1}, mean +- std over seeds (seeds with any); against {ref}: Welch's "
@@ -429,6 +489,9 @@ def main(argv=None) -> int:
     if has_discoveries(conditions):
         plot_discoveries(plt, conditions, out)
         made += ["discovered_per_class", "agent_nodes"]
+        if all("social_share" in r for runs in conditions.values() for r in runs):
+            plot_help_vs_discovery(plt, conditions, out)
+            made.append("help_vs_discovery")
     tmp = out / ".tables.tmp.md"
     tmp.write_text(tables(conditions, args.reference))
     os.replace(tmp, out / "tables.md")

@@ -18,7 +18,7 @@ import gangstr_hme as gh  # noqa: E402
 import plumbing  # noqa: E402
 
 TINY = dict(n_blocks=3, n_cycles=3, n_segments=4, n_updates=2, batch_size=16, segment_len=10, stable_steps=3,
-            eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3)  # fmt: skip
+            eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3, ask_after=1)  # fmt: skip
 
 
 def fixed_batch(seed: int, n: int = 16) -> dict:
@@ -77,6 +77,8 @@ def main(out: Path, num_envs: int):
         segments=learner.segments,
         buffer_size=learner.buffer.size,
         world=plumbing.world(),
+        query=torch.tensor(list(run.sampler.query.values())),
+        help_cycles=run.sampler.stats["help_cycles"],
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
     if num_envs > 1:

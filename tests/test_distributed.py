@@ -96,6 +96,9 @@ def test_two_workers_in_one_process_run_what_two_processes_run(workers, lockstep
     assert torch.equal(r0["internalization"], lockstep["internalization"])
     assert torch.equal(r0["encountered"], lockstep["encountered"])
     assert lockstep["segments"] == r0["segments"] and lockstep["buffer_size"] == r0["buffer_size"]
+    # ... the same help the learner asked for (decided from the shared graph), given to both workers ...
+    assert torch.equal(lockstep["query"], r0["query"]) and torch.equal(r0["query"], r1["query"])
+    assert lockstep["help_cycles"] == r0["help_cycles"] + r1["help_cycles"] > 0
     # ... the same normalizer statistics (to float tolerance: one forward pass acts for both workers, which
     # rounds differently from two) ...
     torch.testing.assert_close(lockstep["normalizer"], r0["normalizer"], rtol=1e-5, atol=1e-4)
@@ -168,7 +171,8 @@ def test_the_baselines_train_with_two_workers(tmp_path, script):
 # ------------------------------------------------------------------------------------------------
 TWO = ["--n-blocks", "3", "--n-cycles", "2", "--n-segments", "4", "--n-updates", "3", "--batch-size", "16",
        "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "3", "--threads", "1", "--seed", "3",
-       "--sp-ratio", "0.3", "--num-envs", "2"]  # fmt: skip
+       "--num-envs", "2"]  # fmt: skip
+HME = ["--sp-ratio", "0.3", "--ask-after", "1"]  # gangstr_hme.py's sampler: the coin and the learner's query
 TIMING = ("time_", "steps_per_second")
 
 
@@ -186,8 +190,8 @@ def rows_of(runs: Path) -> list[dict]:
 
 
 def test_a_two_worker_process_resumed_after_an_epoch_reproduces_the_uninterrupted_run(tmp_path):
-    run(*TWO, "--n-epochs", "3", runs=tmp_path / "a")
-    run(*TWO, "--n-epochs", "1", runs=tmp_path / "b")
+    run(*TWO, *HME, "--n-epochs", "3", runs=tmp_path / "a")
+    run(*TWO, *HME, "--n-epochs", "1", runs=tmp_path / "b")
     (folder,) = (tmp_path / "b").iterdir()
     state = torch.load(folder / "checkpoint.pt", weights_only=True)
     assert len(state["rng"]) == 2 and [len(x) for x in state["buffer"]["obs"]] == [8, 8]  # each worker's own
@@ -195,10 +199,11 @@ def test_a_two_worker_process_resumed_after_an_epoch_reproduces_the_uninterrupte
     run("--resume", str(folder / "checkpoint.pt"), "--n-epochs", "3", runs=tmp_path / "b")
     a, b = rows_of(tmp_path / "a"), rows_of(tmp_path / "b")
     assert len(a) == 3 and a == b
+    assert sum(float(r["queries"]) for r in a) > 0  # the learner asked (shared state, kept by the checkpoint)
 
 
 def test_per_worker_counts_are_summed_in_the_logs(tmp_path):
-    proc = run(*TWO, "--n-epochs", "1", runs=tmp_path)
+    proc = run(*TWO, *HME, "--n-epochs", "1", runs=tmp_path)
     (row,) = rows_of(tmp_path)
     assert int(row["segments"]) == 2 * 2 * 4 and int(row["env_steps"]) == 2 * 2 * 4 * 10  # both workers'
     assert int(row["goals"]) >= 2 * 2  # at least one goal per cycle and worker
@@ -220,7 +225,7 @@ def test_evaluation_goals_are_split_between_the_workers_of_a_process():
 
 @pytest.mark.parametrize("num_envs", ["1", "3"])
 def test_eval_only_runs_any_number_of_workers_on_a_two_worker_checkpoint(tmp_path, num_envs):
-    run(*TWO, "--n-epochs", "1", runs=tmp_path)
+    run(*TWO, *HME, "--n-epochs", "1", runs=tmp_path)
     (folder,) = tmp_path.iterdir()
     argv = ["--eval-only", "--checkpoint", str(folder / "checkpoint.pt"), "--num-envs", num_envs, "--threads", "1"]
     out = run(*argv, runs=tmp_path)
@@ -229,6 +234,6 @@ def test_eval_only_runs_any_number_of_workers_on_a_two_worker_checkpoint(tmp_pat
 
 @pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
 def test_the_baselines_train_with_two_workers_in_one_process(tmp_path, script):
-    run(*TWO[:-4], "--num-envs", "2", "--n-epochs", "1", runs=tmp_path, script=script)  # without --sp-ratio
+    run(*TWO, "--n-epochs", "1", runs=tmp_path, script=script)
     (row,) = rows_of(tmp_path)
     assert int(row["env_steps"]) == 2 * 2 * 4 * 10

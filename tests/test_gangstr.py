@@ -800,7 +800,8 @@ def test_a_run_resumed_under_other_library_versions_says_so_in_one_line_and_goes
     assert plumbing.version_warning(state) is None
 
 
-STOPPED = [*RESUME, "--sp-ratio", "0.3", "--n-cycles", "3", "--n-epochs", "6"]  # with the partner: more draws
+# with the partner: more draws; and the learner's query, whose state a stop must keep
+STOPPED = [*RESUME, "--sp-ratio", "0.3", "--n-cycles", "3", "--n-epochs", "6", "--ask-after", "2", "--help-cycles", "2"]
 
 
 def same_rows(rows_a: list[dict], rows_b: list[dict]):
@@ -816,7 +817,9 @@ def uninterrupted(tmp_path_factory) -> list[dict]:
     runs = tmp_path_factory.mktemp("uninterrupted")
     assert run_script(*STOPPED, runs_dir=runs).returncode == 0
     (run,) = runs.iterdir()
-    return read_rows(run)
+    rows = read_rows(run)
+    assert sum(float(r["queries"]) for r in rows) > 0  # the learner asked
+    return rows
 
 
 def stop_then_resume(runs: Path, sig: signal.Signals, at: str, delay: float, **popen) -> tuple[Path, int, str]:

@@ -440,3 +440,85 @@ def test_frontier_arrivals_and_beyond_goals_reached_are_counted_in_their_class(m
     legs = sum(mode == "det" for _, mode, _ in (entry for entry in world.log if entry != "reset"))
     assert 0 < sum(v for k, v in got.items() if "arrived" in k) < legs  # some legs failed: not every proposal
     assert 0 < sum(v for k, v in got.items() if "reached" in k)
+
+
+# ------------------------------------------------------------------------------------------------
+# Beyond the paper: the learner asks for help (SPEC §7.1)
+# ------------------------------------------------------------------------------------------------
+def answers(run, growth: list[int], asks_per_cycle: int = 1) -> list[bool]:
+    """The learner's answer to "is this cycle help?" for each cycle, the graph having gained growth[i]
+    new nodes just before cycle i (as learn_from adds them); asked asks_per_cycle times a cycle (workers)."""
+    fresh = iter(range(2 ** og.config_dim(N)))  # every +-1 vector's mask: some not yet in the graph
+    said = []
+    for grow in growth:
+        target = run.learner.graph.n_nodes + grow
+        while run.learner.graph.n_nodes < target:
+            run.learner.graph.add_config(next(fresh))
+        run.learner.segments += run.args.n_segments  # a cycle's segments: the learner's clock
+        said.append({run.sampler.asks_for_help() for _ in range(asks_per_cycle)})
+    assert all(len(s) == 1 for s in said)  # every worker of a cycle gets the same answer
+    return [s.pop() for s in said]
+
+
+def test_the_learner_asks_for_help_when_its_graph_stops_growing_and_not_while_it_grows():
+    stuck = answers(hme_run(sp_ratio=0.0, ask_after=3, help_cycles=2), [0] * 12, asks_per_cycle=3)
+    # 3 cycles without a new node, then a query; the help cycle adds nothing, so the help stops at once
+    assert stuck == [False, False, True, False] * 3
+    growing = answers(hme_run(sp_ratio=0.0, ask_after=3, help_cycles=2), [1] * 12)
+    assert not any(growing)
+    never = answers(hme_run(sp_ratio=0.0, ask_after=0), [0] * 12)  # --ask-after 0: the learner never asks
+    assert not any(never)
+
+
+def test_help_goes_on_while_each_social_cycle_adds_a_node_for_help_cycles_at_most():
+    run = hme_run(sp_ratio=0.0, ask_after=2, help_cycles=3)
+    said = answers(run, [0, 0, 1, 1, 1, 1, 0, 0, 0, 5, 0, 0])
+    # asks at cycle 2; cycles 2 and 3 added nodes, so 3 and 4 are help too; 4 is the third: the help is over
+    # at 5 (which still grew: the count of cycles without a new node starts again after it)
+    assert said == [False, True, True, True, False, False, False, True, False, False, False, True]
+    assert run.sampler.query["stalled"] == 2
+
+
+def test_queries_help_cycles_and_help_with_nothing_proposed_are_counted(monkeypatch):
+    run = hme_run(sp_ratio=0.0, ask_after=2, help_cycles=3, n_segments=2, num_envs=2, n_updates=0)
+    ScriptedWorld(run, monkeypatch, APART, lambda g, det: False)  # nothing the agent tries works: no growth
+    monkeypatch.setattr(run.sampler.sp, "frontier_goal", lambda *a, **k: None)  # and the partner has nothing
+    monkeypatch.setattr(run.sampler.sp, "beyond_goal", lambda *a, **k: None)
+    for _ in range(21):
+        gh.one_cycle(run)
+    # the graph grows once (the first cycle's configs), then never: queries at cycles 4, 7, ..., 19 (from 1),
+    # each answered by one social cycle on each of the 2 workers, with nothing proposed; cycle 20 ends the
+    # help, and cycle 21 is one without a new node
+    s = run.sampler.stats
+    assert (s["queries"], s["help_cycles"], s["help_nothing"], s["social_cycles"]) == (6, 12, 12, 12)
+    row = run.sampler.epoch_stats()
+    assert (row["queries"], row["help_cycles"], row["help_nothing"], row["stalled_cycles"]) == (6, 12, 12, 1)
+
+
+def cycle_before_the_query(self, w):
+    """GoalSampler.cycle as it was before the learner could ask (commit 1a90e36), verbatim."""
+    args = self.args
+    self.stats["cycles"] += 1
+    if args.sp_ratio > 0 and w.rng.random() < args.sp_ratio:  # --sp-ratio
+        self.stats["social_cycles"] += 1
+        yield from self.social_cycle(w)
+    elif self.internalization_buffer and w.rng.random() < args.internalization_prob:  # --internalization-prob
+        self.stats["rehearsal_cycles"] += 1
+        yield from self.rehearsal_cycle(w)
+    else:
+        yield from self.autotelic_cycle(w)
+
+
+def test_a_run_with_the_coin_alone_is_the_run_of_the_code_before_the_query(tmp_path, monkeypatch):
+    flags = [*TINY, "--n-epochs", "2", "--n-cycles", "6", "--sp-ratio", "0.4", "--seed", "5"]
+    assert gh.main([*flags, "--runs-dir", str(tmp_path / "now")]) == 0
+    monkeypatch.setattr(gh.GoalSampler, "cycle", cycle_before_the_query)
+    assert gh.main([*flags, "--runs-dir", str(tmp_path / "before")]) == 0
+    (now,), (before,) = (tmp_path / "now").iterdir(), (tmp_path / "before").iterdir()
+    rows_now, rows_before = (list(csv.DictReader((r / "progress.csv").open())) for r in (now, before))
+    timing = ("time_", "steps_per_second")
+    for a, b in zip(rows_now, rows_before, strict=True):
+        assert {k: v for k, v in a.items() if not k.startswith(timing)} == {
+            k: v for k, v in b.items() if not k.startswith(timing)
+        }
+        assert float(a["social_share"]) > 0 and float(a["help_cycles"]) == float(a["queries"]) == 0

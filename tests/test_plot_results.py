@@ -215,6 +215,34 @@ def test_the_committed_discovery_runs_plot_and_tabulate_what_the_partner_opens(t
             assert cell.endswith(f" ({sum(v > 0 for v in values)}/2)"), (cls, cell)
 
 
+def test_help_vs_discovery_counts_each_runs_social_cycles_and_hard_configs(tmp_path):
+    sample = ROOT / "tests" / "data" / "discovery_5blocks_sample"
+    runs = sorted(sample.glob("sp20_seed*")) + sorted(sample.glob("sp0_seed*"))
+    asked = tmp_path / "asked_seed1"  # a run of the learner's query: the same rows, with its columns added
+    asked.mkdir()
+    (asked / "config.json").write_text((runs[0] / "config.json").read_text())
+    with (runs[0] / "progress.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    with (asked / "progress.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=[*rows[0], "queries", "help_nothing"])
+        w.writeheader()
+        w.writerows(r | dict(queries=e % 3, help_nothing=int(e == 4)) for e, r in enumerate(rows))
+    out = tmp_path / "figures"
+    argv = ["--condition", "SP-20%", *map(str, runs[:2]), "--condition", "SP-0", *map(str, runs[2:])]
+    assert pr.main([*argv, "--condition", "asked", str(asked), "--out", str(out)]) == 0
+    assert (out / "help_vs_discovery.png").stat().st_size > 0
+    table = markdown_table_after((out / "tables.md").read_text(), "Help and discovery per run")
+    assert table[0] == ["run", "social cycles", "queries", "help, nothing proposed", "hard configs", *pr.HARD]
+    for run, row in zip([*runs, asked], table[1:], strict=True):
+        with (run / "progress.csv").open(newline="") as f:
+            csv_rows = list(csv.DictReader(f))
+        social = sum(round(float(r["social_share"]) * 50) for r in csv_rows)  # 50 cycles of 10 segments an epoch
+        hard = sum(int(csv_rows[-1][f"agent_nodes_{c}"]) for c in pr.HARD)
+        assert row[1] == str(social) and row[4] == str(hard), (run.name, row)
+        assert row[2:4] == (["9", "1"] if run == asked else ["-", "-"])  # queries 0+1+2+0+1+2+0+1+2+0
+        assert int(row[1]) > 0 if "sp20" in run.name or run == asked else row[1] == "0"
+
+
 def test_fishers_exact_test_matches_the_hypergeometric_tables_of_known_cases():
     assert pr.fisher_p(3, 4, 1, 4) == pytest.approx(34 / 70)  # the tea tasting: tables 3/1 and 1/3, 4/0 and 0/4
     assert pr.fisher_p(5, 5, 0, 5) == pytest.approx(2 / 252)  # all against none: the two extreme tables
