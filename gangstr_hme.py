@@ -80,6 +80,15 @@ class Args:
     help_cycles: int = 3
     """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
     social cycle that added no node to the semantic graph (the partner had nothing new to show)"""
+    partner: str = "oracle"
+    """who chooses the partner's goals: 'oracle' (the paper's simulated partner, uniform draws) or 'person'
+    (you, at a page the run serves: README.md, section "You as the social partner")"""
+    person_timeout: float = 60.0
+    """--partner person: seconds a question waits for an answer; then the oracle's draw is taken"""
+    person_host: str = "127.0.0.1"
+    """--partner person: the address the page is served on (by default, this machine only)"""
+    person_port: int = 8765
+    """--partner person: the page's port (0: any free one)"""
     # --- schedule (SPEC §5) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
@@ -993,6 +1002,9 @@ class Sampler:
       epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
       state_dict(), load_state_dict(s)    its checkpoint entries (top-level keys of the checkpoint, which
                                       load_state_dict receives whole: names no other entry has)
+      open(folder, stopping), close()  a training run's folder, for files of its own, and whether Ctrl-C or
+                                      SIGTERM asked the run to stop (a sampler that waits stops waiting);
+                                      then the run's end
       stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
     and check_sampler_args(args), a function: the first bad value of its options, described, or None.
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
@@ -1049,6 +1061,12 @@ class Sampler:
     def load_state_dict(self, s: dict):
         pass
 
+    def open(self, folder: Path, stopping: collections.abc.Callable[[], bool]):
+        pass
+
+    def close(self):
+        pass
+
 
 # ------------------------------------------------------------------------------------------------
 # The goal sampler: HME, the social partner and internalization (SPEC §7; paper Sections 3.1, 3.4)
@@ -1062,6 +1080,11 @@ class GoalSampler(Sampler):
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         super().__init__(args, learner, workers)
         self.sp = SocialPartner(args.n_blocks)
+        if args.partner == "person" and not args.eval_only:  # a person chooses instead (its own file, its page)
+            import person_partner  # noqa: PLC0415
+
+            clock = lambda: divmod(learner.segments // (args.n_segments * len(workers)), args.n_cycles)  # noqa: E731
+            self.sp = person_partner.PersonPartner(self.sp, args, clock, count=lambda k: self.stats.update([k]))
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
         names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
         kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # goals proposed; goals reached (count)
@@ -1101,7 +1124,7 @@ class GoalSampler(Sampler):
             self.goals += 1
             here, before = current_config(w.env), w.left
             only_frontier = strategy == "frontier"  # its goal is the journey: one the agent must move to
-            frontier = self.sp.frontier_goal(graph, here, w.rng, elsewhere=only_frontier)
+            frontier = self.sp.frontier_goal(graph, here, w, elsewhere=only_frontier)
             base = here if frontier is None else frontier  # no reachable frontier: beyond the current config
             if strategy == "frontier-and-beyond":  # the paper's
                 arrived = True
@@ -1113,7 +1136,7 @@ class GoalSampler(Sampler):
                 if frontier is not None:
                     yield from self.proposed_frontier(w, frontier)
             else:  # --strategy beyond: the frontier stays hidden; one goal beyond it, retried until reached
-                yield from self.attempt_until_reached(w, self.sp.beyond_goal(graph, base, w.rng))
+                yield from self.attempt_until_reached(w, self.sp.beyond_goal(graph, base, w))
             if w.left == before:
                 break  # nothing to propose: the rest of the cycle is autotelic
         proposed = w.left < n_segments
@@ -1125,6 +1148,7 @@ class GoalSampler(Sampler):
         counts as arrived); each counted in its class. Returns whether the agent arrived."""
         self.count("frontier", frontier)
         arrived = yield from self.go_to_frontier(w, frontier)
+        self.sp.outcome(w, frontier, arrived)
         if arrived:
             self.count("frontier_arrived", frontier)
         return arrived
@@ -1141,11 +1165,12 @@ class GoalSampler(Sampler):
         succeed. On a failure the pair (the config the attempt started from, the beyond goal) is
         internalized: after chaining, that config is the frontier the failed step left from."""
         while w.left > 0:
-            beyond = self.sp.beyond_goal(self.learner.graph, start, w.rng)
+            beyond = self.sp.beyond_goal(self.learner.graph, start, w)
             if beyond is None:
                 break
             self.count("beyond", beyond)
             segment = yield Request(beyond, deterministic=False)
+            self.sp.outcome(w, beyond, segment.success)
             if not segment.success:
                 self.internalize(w, start, beyond)
                 break
@@ -1158,11 +1183,14 @@ class GoalSampler(Sampler):
         if beyond is None:
             return
         self.count("beyond", beyond)
+        reached = None  # a budget already spent: no attempt
         while w.left > 0:
             segment = yield Request(beyond, deterministic=False)
+            reached = segment.success
             if segment.success:
                 self.count("beyond_reached", beyond)
                 break
+        self.sp.outcome(w, beyond, reached)
 
     def internalize(self, w: Worker, frontier: int, beyond: int):
         """B_i.store(g, g_b): a failed pair is stored once, however often it fails (SPEC §7)."""
@@ -1231,17 +1259,27 @@ class GoalSampler(Sampler):
         without a new node at the epoch's end), stepping stones left, the number of distinct internalized
         pairs, the partner's proposals per class (frontier and beyond) and those the agent reached."""
         queries = ["queries", "help_cycles", "help_nothing"]
-        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *queries, *self.partner_counts])
+        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *queries, *PERSON_COUNTS,
+                                     *self.partner_counts])  # fmt: skip
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
             social_share=counts["social_cycles"] / cycles,
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
             **{k: counts[k] for k in queries},  # the learner's query (asks_for_help): counts this epoch
             stalled_cycles=self.query["stalled"],  # its signal at the epoch's end
+            **({k: counts[k] for k in PERSON_COUNTS} if self.args.partner == "person" else {}),
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
             **{k: counts[k] for k in self.partner_counts},
         )
+
+    def open(self, folder: Path, stopping: collections.abc.Callable[[], bool]):
+        if self.args.partner == "person":
+            self.sp.open(folder, stopping)  # the page is served from now on; picks.csv in the folder
+
+    def close(self):
+        if self.args.partner == "person":
+            self.sp.close()
 
     def state_dict(self) -> dict:
         return dict(
@@ -1256,6 +1294,8 @@ class GoalSampler(Sampler):
 
 
 STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
+PARTNERS = ("oracle", "person")
+PERSON_COUNTS = ("person_picks", "person_skips", "person_timeouts")  # --partner person: who chose, per epoch
 
 
 def check_sampler_args(a: Args) -> str | None:
@@ -1269,6 +1309,14 @@ def check_sampler_args(a: Args) -> str | None:
         return f"--ask-after must be 0 (never ask) or more, got {a.ask_after}"
     if a.help_cycles < 1:
         return f"--help-cycles must be 1 or more, got {a.help_cycles}"
+    if a.partner not in PARTNERS:
+        return f"--partner must be one of {', '.join(PARTNERS)}, got {a.partner!r}"
+    if not a.person_timeout > 0:
+        return f"--person-timeout must be above 0 seconds, got {a.person_timeout}"
+    if not 0 <= a.person_port <= 65535:
+        return f"--person-port must be in [0, 65535], got {a.person_port}"
+    if a.partner == "person" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        return f"--partner person takes one process (one page), not {os.environ['WORLD_SIZE']} under torchrun"
     return None
 
 
@@ -1295,22 +1343,35 @@ class SocialPartner:
         """Agent nodes that are oracle nodes with an oracle neighbour the agent has no edge to."""
         return np.unique(self.edge_heads[self._untried(graph)])
 
-    def frontier_goal(self, graph: SemanticGraph, current: int, rng: np.random.Generator, elsewhere: bool = False):
+    def frontier_goal(self, graph: SemanticGraph, current: int, w: Worker, elsewhere: bool = False) -> int | None:
         """Uniform among the stepping stones reachable in the agent graph from `current` (included,
         unless `elsewhere`: a goal the agent must move to)."""
-        stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
-        stones = stones[stones != current] if elsewhere else stones
-        return int(stones[rng.integers(len(stones))]) if len(stones) else None
+        return self.choose(w, self.frontier_candidates(graph, current, elsewhere))
 
-    def beyond_goal(self, graph: SemanticGraph, config: int, rng: np.random.Generator) -> int | None:
+    def frontier_candidates(self, graph: SemanticGraph, current: int, elsewhere: bool = False) -> np.ndarray:
+        stones = np.intersect1d(self.stepping_stones(graph), graph.reachable(current))
+        return stones[stones != current] if elsewhere else stones
+
+    def beyond_goal(self, graph: SemanticGraph, config: int, w: Worker) -> int | None:
         """Uniform among the oracle neighbours c' of `config` with no agent edge config -> c'."""
+        return self.choose(w, self.beyond_candidates(graph, config))
+
+    def beyond_candidates(self, graph: SemanticGraph, config: int) -> np.ndarray:
         i = int(self.oracle.index(og.from_mask(config, self.oracle.n_blocks)))
-        if i < 0:
-            return None
+        if i < 0:  # not a config of the oracle: no neighbour
+            return np.zeros(0, dtype=np.int64)
         tails = self.oracle.masks[self.oracle.neighbour_indices(i)]
         keys = (np.int64(config) << self.dim) | tails
-        beyond = tails[~np.isin(keys, graph.edge_keys())]
-        return int(beyond[rng.integers(len(beyond))]) if len(beyond) else None
+        return tails[~np.isin(keys, graph.edge_keys())]
+
+    def choose(self, w: Worker, candidates: np.ndarray) -> int | None:
+        """The simulated partner's choice: uniform, from the worker's stream (None: nothing to propose).
+        A person at a browser chooses instead with --partner person (person_partner.py)."""
+        return int(candidates[w.rng.integers(len(candidates))]) if len(candidates) else None
+
+    def outcome(self, w: Worker, goal: int, reached: bool | None):
+        """What came of a proposed goal (None: the cycle's budget cut the attempt off). The simulated
+        partner needs nothing of it; a person's page shows it."""
 
 
 def merge_pairs(kept: list[tuple[int, int]], new: list[tuple[int, int]]) -> list[tuple[int, int]]:

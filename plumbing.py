@@ -1192,11 +1192,14 @@ class RunFolder:
         self.saved_at, self.before_evaluation = None, None  # (epoch, cycle) the checkpoint holds; see evaluate
         device = run.learner.agent.device
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
+        self.sampler = run.sampler
+        self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 
     def __enter__(self) -> RunFolder:
         return self
 
     def __exit__(self, *exc):
+        self.sampler.close()
         if self.logger is not None:
             self.logger.close()
 

@@ -973,6 +973,9 @@ class Sampler:
       epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
       state_dict(), load_state_dict(s)    its checkpoint entries (top-level keys of the checkpoint, which
                                       load_state_dict receives whole: names no other entry has)
+      open(folder, stopping), close()  a training run's folder, for files of its own, and whether Ctrl-C or
+                                      SIGTERM asked the run to stop (a sampler that waits stops waiting);
+                                      then the run's end
       stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
     and check_sampler_args(args), a function: the first bad value of its options, described, or None.
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
@@ -1027,6 +1030,12 @@ class Sampler:
         return {}
 
     def load_state_dict(self, s: dict):
+        pass
+
+    def open(self, folder: Path, stopping: collections.abc.Callable[[], bool]):
+        pass
+
+    def close(self):
         pass
 
 

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from collections import Counter, deque
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -31,6 +32,11 @@ C01 = M(close=[(0, 1)])
 @pytest.fixture(scope="module")
 def sp():
     return gh.SocialPartner(N)
+
+
+def stream(seed: int) -> SimpleNamespace:
+    """What the partner reads of a worker when it draws: its random stream."""
+    return SimpleNamespace(rng=np.random.default_rng(seed))
 
 
 def agent_graph(edges=(), nodes=()):
@@ -100,7 +106,7 @@ def test_configs_outside_the_oracle_are_never_stepping_stones(sp):
     impossible = M(above=[(0, 1), (1, 0)])
     g = agent_graph(nodes=[impossible])
     assert len(sp.stepping_stones(g)) == 0
-    assert sp.beyond_goal(g, impossible, np.random.default_rng(0)) is None
+    assert sp.beyond_goal(g, impossible, stream(0)) is None
 
 
 @pytest.mark.parametrize("seed", range(8))
@@ -114,11 +120,11 @@ def test_stepping_stones_match_a_brute_force_check(sp, seed):
 def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp, seed, elsewhere):
     # elsewhere (--strategy frontier): a goal the agent must move to, never its own config.
     g = random_agent_graph(sp, seed, p_edge=0.3)
-    rng = np.random.default_rng(seed)
+    w = stream(seed)
     stones = brute_force_stones(sp, g)
     for start in g.masks[:: max(1, g.n_nodes // 6)]:
         allowed = (stones & reachable(g, start)) - ({start} if elsewhere else set())
-        drawn = {sp.frontier_goal(g, start, rng, elsewhere=elsewhere) for _ in range(60)}
+        drawn = {sp.frontier_goal(g, start, w, elsewhere=elsewhere) for _ in range(60)}
         if not allowed:
             assert drawn == {None}
         else:
@@ -128,12 +134,12 @@ def test_frontier_goals_are_stepping_stones_reachable_from_the_current_config(sp
 @pytest.mark.parametrize("seed", range(8))
 def test_beyond_goals_are_oracle_neighbours_without_an_agent_edge(sp, seed):
     g = random_agent_graph(sp, seed)
-    rng = np.random.default_rng(seed)
+    w = stream(seed)
     agent_edges = {(g.masks[u], g.masks[v]) for u, v, _ in g.edge_log}
     for m in g.masks:
         nbrs = set(og.to_mask(sp.oracle.neighbours(og.from_mask(m, N))).tolist())
         allowed = {c for c in nbrs if (m, c) not in agent_edges}
-        drawn = {sp.beyond_goal(g, m, rng) for _ in range(30)}
+        drawn = {sp.beyond_goal(g, m, w) for _ in range(30)}
         assert drawn == {None} if not allowed else drawn <= allowed
 
 
@@ -141,8 +147,8 @@ def test_with_no_stepping_stone_left_the_partner_proposes_nothing(sp):
     everything = [(int(sp.edge_heads[k]), int(sp.edge_tails[k])) for k in range(len(sp.edge_heads))]
     g = agent_graph(everything)
     assert len(sp.stepping_stones(g)) == 0
-    rng = np.random.default_rng(0)
-    assert all(sp.frontier_goal(g, m, rng) is None and sp.beyond_goal(g, m, rng) is None for m in g.masks)
+    w = stream(0)
+    assert all(sp.frontier_goal(g, m, w) is None and sp.beyond_goal(g, m, w) is None for m in g.masks)
 
 
 # ------------------------------------------------------------------------------------------------
