@@ -187,7 +187,8 @@ class PersonPartner:
             picked, by = answered[1], "person" if answered[1] is not None else "skipped"
         else:
             picked, by = self.partner.choose(w, candidates), "dropped" if self.stopping() else "timeout"
-        self.tally[by] += 1
+        with self.lock:
+            self.tally[by] += 1
         if by != "dropped":  # a stop's: in picks.csv only
             self.count({"person": "person_picks", "skipped": "person_skips", "timeout": "person_timeouts"}[by])
         view = next((v for v in views if v["mask"] == picked), None)
