@@ -89,6 +89,7 @@ class Args:
     """--partner person: the address the page is served on (by default, this machine only)"""
     person_port: int = 8765
     """--partner person: the page's port (0: any free one)"""
+    RESUMABLE = ("person_timeout", "person_host", "person_port")  # --resume may change them (where the page is)
     # --- schedule (SPEC §5) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
@@ -1246,12 +1247,14 @@ class GoalSampler(Sampler):
 
     def after_cycle(self):
         """Workers merge the pairs they stored this cycle, in worker order: every worker rehearses all
-        of them (SPEC §11)."""
+        of them (SPEC §11). A person's page is shown the run's state."""
         mine = np.array([p for w in self.workers for p in w.new_pairs], dtype=np.int64).reshape(-1, 2)
         merged = list(map(tuple, all_gather_rows(mine).tolist()))
         self.internalization_buffer = merge_pairs(self.internalization_buffer, merged)
         for w in self.workers:
             w.new_pairs = []
+        if self.args.partner == "person":
+            self.sp.publish(self.learner.graph)
 
     def epoch_stats(self) -> dict:
         """Besides autotelic success: the share of social and rehearsal cycles, the learner's queries (the
@@ -1311,12 +1314,16 @@ def check_sampler_args(a: Args) -> str | None:
         return f"--help-cycles must be 1 or more, got {a.help_cycles}"
     if a.partner not in PARTNERS:
         return f"--partner must be one of {', '.join(PARTNERS)}, got {a.partner!r}"
-    if not a.person_timeout > 0:
-        return f"--person-timeout must be above 0 seconds, got {a.person_timeout}"
+    if not (math.isfinite(a.person_timeout) and a.person_timeout > 0):
+        return f"--person-timeout must be a number of seconds above 0, got {a.person_timeout}"
     if not 0 <= a.person_port <= 65535:
         return f"--person-port must be in [0, 65535], got {a.person_port}"
+    if not a.person_host or ":" in a.person_host:
+        return f"--person-host must be an IPv4 address or a host name, got {a.person_host!r}"
     if a.partner == "person" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         return f"--partner person takes one process (one page), not {os.environ['WORLD_SIZE']} under torchrun"
+    if a.partner == "person" and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
+        return "--partner person needs social cycles to ask in: give --sp-ratio above 0 or --ask-after above 0"
     return None
 
 

@@ -12,9 +12,10 @@ agent stands (an untried neighbour). The agent then pursues the pick as it would
   after; between questions the run's state. It polls the run, so it may be opened late or reloaded.
 - Never hangs: with no answer within --person-timeout seconds the oracle's uniform draw is taken (and
   recorded as a timeout), so an unattended run finishes. Ctrl-C and SIGTERM drop a pending question.
-- Safe by default: the server binds to 127.0.0.1, every request must carry the run's random token, the
-  Host header must name the server (no DNS rebinding), and an answer must name the waiting question and
-  one of its candidates, in a small JSON body; anything else gets a 4xx and changes nothing.
+- Safe by default: the server binds to 127.0.0.1, every request must carry the run's random token, on a
+  loopback address the Host header must name the server (no DNS rebinding), and an answer must name the
+  waiting question and one of its candidates, in a small JSON body; anything else gets a 4xx and changes
+  nothing.
 - picks.csv in the run folder records every question (PICK_COLUMNS); progress.csv counts the person's
   picks, skips and timeouts per epoch.
 Standard library only (http.server in a thread, zlib for the PNG frames), besides numpy and mujoco.
@@ -27,6 +28,7 @@ import hmac
 import http.server
 import ipaddress
 import json
+import os
 import secrets
 import struct
 import sys
@@ -94,6 +96,9 @@ class PersonPartner:
     adds one to the sampler's count k (progress.csv)."""
 
     def __init__(self, partner, args, clock, count):
+        if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # however it came (a resumed run's options included)
+            print("error: --partner person takes one process (one page), not torchrun's", file=sys.stderr)
+            sys.exit(2)
         self.partner, self.args, self.clock, self.count = partner, args, clock, count
         self.n_blocks = args.n_blocks
         self.token = secrets.token_urlsafe(18)
@@ -112,6 +117,7 @@ class PersonPartner:
                   file=sys.stderr)  # fmt: skip
             sys.exit(2)
         self.server.daemon_threads = True
+        self.server.handle_error = lambda request, address: None  # a browser gone mid-reply: not the run's concern
         self.port = self.server.server_address[1]
         self.thread = None
 
@@ -125,6 +131,9 @@ class PersonPartner:
         """Serve the page (its address printed on one line) and append to the folder's picks.csv."""
         self.folder, self.stopping = Path(folder), stopping
         new = not (self.folder / "picks.csv").exists()
+        if not new:  # a resumed run: its questions are numbered on from the file's
+            with (self.folder / "picks.csv").open(newline="") as f:
+                self.asked = max((int(r["question"]) for r in csv.DictReader(f) if r["question"].isdigit()), default=0)
         self.picks = (self.folder / "picks.csv").open("a", newline="")
         self.writer = csv.DictWriter(self.picks, fieldnames=PICK_COLUMNS)
         if new:
@@ -132,6 +141,7 @@ class PersonPartner:
             self.picks.flush()
         self.thread = threading.Thread(target=self.server.serve_forever, name="person-partner", daemon=True)
         self.thread.start()
+        self.publish(None)
         host = self.args.person_host
         shown = f"[{host}]" if ":" in host else host
         print(f"person partner: open http://{shown}:{self.port}/?token={self.token} in a browser "
@@ -170,15 +180,17 @@ class PersonPartner:
         self.publish(graph)
         epoch, cycle = self.clock()
         views = [config_view(int(m), self.n_blocks, self.partner.oracle) for m in candidates]
+        frame = self.frame(w)
         with self.lock:
             self.asked += 1
             qid = self.asked
-            self.frames[f"q{qid}"] = self.frame(w)
+            self.frames[f"q{qid}"] = frame
             self.frames = {k: v for k, v in self.frames.items() if int(k[1:]) >= qid - 2}  # the recent ones
             self.question = dict(id=qid, worker=w.index, kind=kind, epoch=epoch, cycle=cycle,
+                                 goes_there=kind == "beyond" or self.args.strategy != "beyond",
                                  here=config_view(here, self.n_blocks, self.partner.oracle), candidates=views,
                                  deadline=time.monotonic() + self.args.person_timeout,
-                                 frame=self.frames[f"q{qid}"] is not None)  # fmt: skip
+                                 frame=frame is not None)  # fmt: skip
             self.answer = None
             while self.answer is None and time.monotonic() < self.question["deadline"] and not self.stopping():
                 self.lock.wait(0.1)
@@ -207,7 +219,10 @@ class PersonPartner:
     def outcome(self, w, goal: int, reached: bool | None):
         """The attempt at a pick is over: its row in picks.csv, and the page shows it with the frame after."""
         row = self.open_rows.pop(w.index, None)
-        if row is None or row["picked"] != goal:
+        if row is None:
+            return
+        if row["picked"] != goal:  # not this pick's attempt: the pick's row is kept, without an outcome
+            self.write(row)
             return
         tried = w.segments[row["since"] :]
         row |= dict(first_goal=int(og.to_mask(tried[0].g)) if tried else "", segments=len(tried),
@@ -217,7 +232,7 @@ class PersonPartner:
 
     def publish(self, graph):
         """The run's state for the page (read by the server thread): agent-graph nodes per class."""
-        masks = np.asarray(graph.masks, dtype=np.int64)
+        masks = np.asarray([] if graph is None else graph.masks, dtype=np.int64)
         nodes = {k: int(np.isin(og.to_mask(m), masks).sum()) for k, m in self.partner.oracle.classes.items()}
         epoch, cycle = self.clock()
         with self.lock:
@@ -262,7 +277,8 @@ class PersonPartner:
     def check(self, handler) -> str:
         """The request's path, once its Host header and token are right (else Rejected, 4xx)."""
         host = handler.headers.get("Host", "")
-        if self.loopback() and host not in (f"127.0.0.1:{self.port}", f"localhost:{self.port}", f"[::1]:{self.port}"):
+        names = {self.args.person_host, "127.0.0.1", "localhost"}
+        if self.loopback() and host not in {f"{name}:{self.port}" for name in names}:
             raise Rejected(403, f"Host {host!r} is not this server's")
         url = urllib.parse.urlsplit(handler.path)
         query = urllib.parse.parse_qs(url.query)
@@ -298,7 +314,7 @@ class PersonPartner:
         """An answer from the page: {"question": id, "goal": mask or null}. Checked whole before it counts."""
         try:
             data = json.loads(body)
-        except (ValueError, UnicodeDecodeError):
+        except (ValueError, UnicodeDecodeError, RecursionError):
             raise Rejected(400, "the body is not JSON") from None
         if not isinstance(data, dict) or set(data) != {"question", "goal"}:
             raise Rejected(400, 'the body must be {"question": <id>, "goal": <mask or null>}')
@@ -312,6 +328,8 @@ class PersonPartner:
                 raise Rejected(409, f"question {qid} is {'no longer waiting (stale)' if known else 'unknown'}")
             if goal is not None and goal not in [c["mask"] for c in q["candidates"]]:
                 raise Rejected(422, f"goal {goal} was not offered in question {qid}")
+            if self.answer is not None:
+                raise Rejected(409, f"question {qid} is already answered")
             self.answer = (qid, goal)
             self.lock.notify_all()
 
@@ -320,6 +338,7 @@ class PersonPartner:
 
         class Handler(http.server.BaseHTTPRequestHandler):
             server_version = "person-partner"
+            timeout = 15  # seconds a connection may keep a thread waiting for its request
 
             def log_message(self, *a):  # quiet: the run's console is the training's
                 pass
@@ -351,6 +370,14 @@ class PersonPartner:
             def do_POST(self):
                 self.guarded(self.post)
 
+            def refuse(self):
+                def serve(path: str):
+                    raise Rejected(405, f"{self.command} is not served")
+
+                self.guarded(serve)
+
+            do_PUT = do_DELETE = do_PATCH = do_OPTIONS = do_HEAD = refuse
+
             def get(self, path: str):
                 if path == "/":
                     self.send(200, PAGE.encode(), "text/html; charset=utf-8")
@@ -376,7 +403,9 @@ class PersonPartner:
                     length = int(self.headers.get("Content-Length", ""))
                 except ValueError:
                     raise Rejected(411, "Content-Length is missing or not a number") from None
-                if not 0 <= length <= MAX_BODY:
+                if length < 0:
+                    raise Rejected(400, f"Content-Length {length} is negative")
+                if length > MAX_BODY:
                     raise Rejected(413, f"the body is {length} bytes; an answer takes at most {MAX_BODY}")
                 partner.take_answer(self.rfile.read(length))
                 self.reply(200, dict(ok=True))
@@ -405,7 +434,7 @@ button.candidate:hover{border-color:#2d7be5}button.skip{margin-top:12px;padding:
 </style></head><body>
 <header><h1>Help Me Explore: you are the social partner</h1><div id="status">connecting...</div></header>
 <main>
-<section id="scene"><h3>The scene now</h3><div id="frame"></div><div id="here"></div></section>
+<section id="scene"><h3 id="scenetitle">The scene</h3><div id="frame"></div><div id="here"></div></section>
 <section id="ask"><h3 id="title">Waiting for the agent to ask...</h3><div id="hint" class="wait"></div>
 <div id="cands"></div><div id="skipbox"></div></section>
 <section id="side"><h3>Last outcome</h3><div id="last" class="wait">none yet</div>
@@ -471,8 +500,12 @@ function view(v, n, size) {
 
 async function answer(id, goal) {
   const body = JSON.stringify({question: id, goal: goal});
-  const r = await fetch(`/answer?${T}`, {method: "POST", headers: {"Content-Type": "application/json"}, body});
-  $("hint").textContent = r.ok ? "sent: the agent is on it" : (await r.json()).error;
+  try {
+    const r = await fetch(`/answer?${T}`, {method: "POST", headers: {"Content-Type": "application/json"}, body});
+    $("hint").textContent = r.ok ? "sent: the agent is on it" : (await r.json()).error;
+  } catch (e) {
+    $("hint").textContent = "not sent: the run is not answering";
+  }
   shown = -id;
   tick();
 }
@@ -494,9 +527,11 @@ function showRun(s) {
 }
 
 function showQuestion(q, n) {
-  $("title").textContent = q.kind === "frontier"
-    ? `Question ${q.id}: which known configuration should the agent go to? (a frontier goal)`
-    : `Question ${q.id}: which new configuration should it try from here? (a goal beyond)`;
+  $("title").textContent = q.kind !== "frontier"
+    ? `Question ${q.id}: which new configuration should it try? (a goal beyond)`
+    : q.goes_there ? `Question ${q.id}: which known configuration should the agent go to? (a frontier goal)`
+    : `Question ${q.id}: from which known configuration should the next goal go on? (a frontier, not visited)`;
+  $("scenetitle").textContent = "The scene now";
   $("frame").innerHTML = q.frame ? `<img alt="the scene" src="/frame/q${q.id}.png?${T}">` : "";
   $("here").innerHTML = `<p>The agent stands at:</p>${view(q.here, n, 150)}`;
   $("cands").innerHTML = "";
@@ -529,6 +564,7 @@ async function tick() {
   const q = s.question;
   if (!q) {
     if (shown !== 0) {
+      $("scenetitle").textContent = `The scene at question ${Math.abs(shown)}`;
       shown = 0;
       $("title").textContent = "Waiting for the agent to ask...";
       $("cands").innerHTML = "";

@@ -711,7 +711,8 @@ def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
     """The checkpoint's arguments with this command line's run-control flags; exit 2 naming every given
     flag that contradicts the checkpoint (it would silently be ignored otherwise)."""
     saved = type(args)(**state["args"])
-    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL
+    # besides plumbing's own, a script's Args may name what --resume may change in its RESUMABLE
+    allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL + tuple(getattr(type(args), "RESUMABLE", ()))
     bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
            for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
     if bad:
@@ -1138,6 +1139,9 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
             args = args_with_blocks_of(args, given_flags(Args, argv), state, path, flag)
         else:
             args = args_from_checkpoint(args, given_flags(Args, argv), state, flag)
+            if (why := check_sampler_args(args)) is not None:  # the checkpoint's options, in this job
+                print(f"error: {flag}: {why}", file=sys.stderr)
+                sys.exit(2)
         if args.resume and state["counters"]["epoch"] >= args.n_epochs:
             print(f"nothing to do: {args.resume} has finished epoch {state['counters']['epoch'] - 1} "
                   f"(--n-epochs {args.n_epochs}); give a larger --n-epochs to train on")  # fmt: skip

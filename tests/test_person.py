@@ -195,6 +195,18 @@ def no_length(a, q):
     return int(reply.split()[1]), reply
 
 
+def raw(a, head: str, body: bytes = b""):
+    """A request written by hand (what http.client will not send), and its status."""
+    conn = socket.create_connection(("127.0.0.1", a.port), timeout=10)
+    conn.sendall(head.replace("TOKEN", a.token).encode() + b"\r\n\r\n" + body)
+    reply = b""
+    while chunk := conn.recv(4096):
+        reply += chunk
+    conn.close()
+    text = reply.decode()
+    return int(text.split()[1]), text.split("\r\n\r\n", 1)[-1].encode()
+
+
 BAD = {
     "wrong token": (lambda a, q: a.request("POST", "/answer", dict(question=q, goal=1), token="nope"), 403),
     "no token": (lambda a, q: a.request("POST", "/answer", dict(question=q, goal=1), token=None), 403),
@@ -221,6 +233,18 @@ BAD = {
     "unknown page": (lambda a, q: a.request("GET", "/admin"), 404),
     "unknown frame": (lambda a, q: a.request("GET", f"/frame/q{q + 5}.png"), 404),
     "GET an answer": (lambda a, q: a.request("GET", "/answer"), 405),
+    "PUT an answer": (lambda a, q: a.request("PUT", "/answer", dict(question=q, goal=1)), 405),
+    "DELETE": (lambda a, q: a.request("DELETE", "/state"), 405),
+    "deeply nested JSON": (lambda a, q: a.request("POST", "/answer", b"[" * 1000), 400),
+    "negative Content-Length": (
+        lambda a, q: raw(
+            a,
+            f"POST /answer?token=TOKEN HTTP/1.0\r\nHost: 127.0.0.1:{a.port}\r\n"
+            "Content-Type: application/json\r\nContent-Length: -5",
+        ),  # fmt: skip
+        400,
+    ),
+    "no Host header": (lambda a, q: raw(a, "GET /state?token=TOKEN HTTP/1.0"), 403),
     "POST the state": (lambda a, q: a.request("POST", "/state", dict(question=q, goal=1)), 405),
 }
 
@@ -243,6 +267,34 @@ def test_a_bad_request_gets_a_4xx_and_changes_nothing(asking, name):
     assert after["run"] == before["run"] and after["question"]["id"] == q["id"]
     one = next(c["mask"] for c in q["candidates"] if c["mask"] != 0)
     assert asking.request("POST", "/answer", dict(question=q["id"], goal=one))[0] == 200  # still answerable
+    asking.thread.join(5)
+    assert asking.result == one
+
+
+class Parked(threading.Condition):
+    """The partner's lock, whose waiting run thread stays parked (lock released) until `go` is set."""
+
+    def __init__(self):
+        super().__init__()
+        self.go = threading.Event()
+
+    def wait(self, timeout=None):
+        if self.go.is_set():
+            return super().wait(timeout)
+        self.release()
+        self.go.wait(10)
+        self.acquire()
+        return False
+
+
+def test_a_second_answer_to_a_question_is_refused_and_the_first_one_counts(asking):
+    asking.partner.lock = Parked()
+    q = asking.ask_beyond()
+    one, two = [c["mask"] for c in q["candidates"][:2]]
+    assert asking.request("POST", "/answer", dict(question=q["id"], goal=one))[0] == 200
+    status, body = asking.request("POST", "/answer", dict(question=q["id"], goal=two))  # a double click, two tabs
+    assert status == 409 and "already answered" in json.loads(body)["error"]
+    asking.partner.lock.go.set()
     asking.thread.join(5)
     assert asking.result == one
 
@@ -291,6 +343,25 @@ def test_a_person_partner_under_torchrun_is_refused_in_one_line(tmp_path):
     assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--person-timeout", "inf"], "--person-timeout"),
+        (["--person-host", "::1"], "--person-host"),
+        (["--person-host", ""], "--person-host"),
+    ],
+)
+def test_a_person_partner_with_bad_page_options_exits_2(tmp_path, argv, named):
+    out = script("--partner", "person", "--sp-ratio", "1", *argv, *TINY, runs=tmp_path / "runs")
+    assert out.returncode == 2 and named in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_person_partner_with_no_social_cycle_to_ask_in_is_refused(tmp_path):
+    out = script("--partner", "person", *TINY, runs=tmp_path / "runs")  # neither --sp-ratio nor --ask-after
+    assert out.returncode == 2 and "needs social cycles" in out.stderr and not (tmp_path / "runs").exists()
+
+
 def test_a_port_in_use_exits_2_before_anything_is_written(tmp_path):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -314,3 +385,25 @@ def test_an_unattended_run_finishes_by_timeouts_and_counts_them(tmp_path):
     with (run / "progress.csv").open(newline="") as f:
         (row,) = csv.DictReader(f)
     assert float(row["person_timeouts"]) == len(picks) and float(row["person_picks"]) == 0
+
+
+def test_asked_only_when_the_learner_asks_and_a_resume_numbers_questions_on(tmp_path):
+    flags = ["--partner", "person", "--person-port", "0", "--person-timeout", "0.2", "--ask-after", "1",
+             "--n-epochs", "1", "--n-cycles", "4", *TINY[TINY.index("--n-segments") :]]  # fmt: skip
+    assert script(*flags, "--n-blocks", "3", runs=tmp_path).returncode == 0
+    (run,) = tmp_path.iterdir()
+    with (run / "progress.csv").open(newline="") as f:
+        (row,) = csv.DictReader(f)
+    with (run / "picks.csv").open(newline="") as f:
+        first = list(csv.DictReader(f))
+    assert float(row["queries"]) > 0 and float(row["social_share"]) == float(row["help_cycles"]) / 4
+    assert first and {int(p["cycle"]) for p in first} <= set(range(4))  # questions in help cycles only
+    torchrun = os.environ | dict(WORLD_SIZE="2", RANK="0", LOCAL_RANK="0")  # the checkpoint's --partner person
+    out = script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs=tmp_path, env=torchrun)
+    assert out.returncode == 2 and "--partner person takes one process" in out.stderr
+    out = script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", "--person-port", "0", runs=tmp_path)
+    assert out.returncode == 0, out.stderr  # a new port on resume: the page's options may change
+    with (run / "picks.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["question"]) for r in rows] == list(range(1, len(rows) + 1)) and len(rows) > len(first)
+    assert {r["epoch"] for r in rows[len(first) :]} == {"1"}
