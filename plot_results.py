@@ -288,14 +288,14 @@ def plot_help_vs_discovery(plt, conditions: dict, out: Path):
     for marker, (name, runs) in zip(markers * 4, conditions.items(), strict=False):
         x = [social_cycles(r).sum() for r in runs]
         y = [hard_discovered(r)[-1] for r in runs]
-        ax.scatter(x, y, marker=marker, s=45, alpha=0.8, label=f"{name} ({len(runs)} seeds)")
+        ax.scatter(x, y, marker=marker, s=45, alpha=0.7, label=f"{name} ({len(runs)} seed{'s' * (len(runs) > 1)})")
     ax.set_xscale("symlog", linthresh=1)
     ax.set_xlim(left=-0.3)
     top = sum(len(v) for k, v in og.evaluation_classes(int(runs[0]["n_blocks"])).items() if k in HARD)
     ax.axhline(top, color="grey", lw=0.8, ls="--")
     ax.set(xlabel="social cycles in the run", ylabel=f"hard-class configs discovered (of {top})",
            title="help vs discovery: " + ", ".join(c for c in HARD))  # fmt: skip
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1))  # beside the axes: points fill them
     ax.grid(alpha=0.3)
     save(fig, out, "help_vs_discovery")
     plt.close(fig)
