@@ -36,7 +36,9 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
+import socket
 import sys
 import time
 import warnings
@@ -221,9 +223,9 @@ def check_run_control(a) -> str | None:
                 "--eval-only (evaluate the file with --eval-only --checkpoint PATH)")  # fmt: skip
     if a.resume and not os.path.isfile(a.resume):
         return f"--resume: cannot read checkpoint {a.resume!r}"
-    if a.init_from and not os.path.isfile(a.init_from):
+    if a.init_from not in ("", "paper") and not os.path.isfile(a.init_from):  # paper: see paper_file
         return f"--init-from: cannot read {a.init_from!r}"
-    if a.eval_only and not os.path.isfile(a.checkpoint):
+    if a.eval_only and a.checkpoint != "paper" and not os.path.isfile(a.checkpoint):
         return f"--eval-only needs a readable --checkpoint, got {a.checkpoint!r}"
     if a.checkpoint and not a.eval_only:
         return f"--checkpoint {a.checkpoint!r} is read by --eval-only only (to continue a run: --resume)"
@@ -825,6 +827,41 @@ def args_with_blocks_of(args, given: set[str], state: dict, path: str, flag: str
     return dataclasses.replace(args, n_blocks=n)
 
 
+# `paper` for --init-from or --checkpoint: the authors' file at the commit that added it, checked against the
+# sha256 that results/*/config.json record, kept in one cache folder. Tests point these at a local server.
+PAPER_COMMIT = "f95e3900401cd690c068deeadad9607cef095afa"  # of https://github.com/akakzia/gangstr
+PAPER_URL = f"https://raw.githubusercontent.com/akakzia/gangstr/{PAPER_COMMIT}/hipstr/gangstr.pt"
+PAPER_SHA256 = "0e37c60367ca83994028529553599eced86f1ab8731b06fcc691a7b42c9ed0e8"
+PAPER_TIMEOUT = 30  # seconds a silent server is waited for
+
+
+def paper_file(flag: str) -> str:
+    """The authors' file in $XDG_CACHE_HOME (or ~/.cache)/hme-gangstr/, downloaded the first time (torch.hub:
+    the hash checked, no partial file kept, a progress bar on a terminal); or exit 2 with one line, the cache
+    as it was."""
+    path = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hme-gangstr" / "gangstr.pt"
+    made = next((p for p in reversed(path.parents) if not p.exists()), None)  # the first folder to create
+    timeout = socket.getdefaulttimeout()
+    try:
+        if not path.is_file():
+            progress(f"{flag} paper: downloading the authors' agent (1.2 MB) to {path}", final=True)
+            socket.setdefaulttimeout(PAPER_TIMEOUT)  # urlopen's, inside torch.hub
+            path.parent.mkdir(parents=True, exist_ok=True)
+            torch.hub.download_url_to_file(PAPER_URL, str(path), PAPER_SHA256, progress=sys.stderr.isatty())
+        with open(path, "rb") as f:  # a file put there by hand is checked too
+            if (digest := hashlib.file_digest(f, "sha256").hexdigest()) != PAPER_SHA256:
+                raise ValueError(f"{path} is not the authors' file, its sha256 is {digest}")
+    except Exception as e:  # noqa: BLE001 (offline, a silent server, a wrong hash, a full disk: the same advice)
+        if made is not None:
+            shutil.rmtree(made, ignore_errors=True)
+        print(f"error: {flag} paper: {type(e).__name__}: {' '.join(str(e).split())}; download {PAPER_URL} and put "
+              f"it at {path}", file=sys.stderr)  # fmt: skip
+        sys.exit(2)
+    finally:
+        socket.setdefaulttimeout(timeout)
+    return str(path)
+
+
 # ------------------------------------------------------------------------------------------------
 # Outputs (plumbing; SPEC §10): progress.csv, TensorBoard, console, --eval-only results and videos
 # ------------------------------------------------------------------------------------------------
@@ -1130,6 +1167,9 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
     args is None when --resume has nothing left to train (said so). --eval-only's args hold what the
     evaluation needs: a replay of one segment, the checkpoint's run with this command line's evaluation flags."""
     args, state, init = parse_args(Args, check_sampler_args, argv), None, None
+    for flag, field in (("--init-from", "init_from"), ("--checkpoint", "checkpoint")):
+        if getattr(args, field) == "paper":  # every other flag checked first: a bad one downloads nothing
+            args = dataclasses.replace(args, **{field: paper_file(flag)})
     if args.resume or args.eval_only:
         flag, path = ("--resume", args.resume) if args.resume else ("--checkpoint", args.checkpoint)
         state = load_checkpoint(Args, path, flag)

@@ -4,10 +4,11 @@ copy of the file), pooled over seeds, and the share of block-steps during those 
 its side (|roll| or |pitch| over bench_grasp's TIP_ANGLE). Run it in one virtual environment per release,
 on the same seeds: the goals and the draws are the same, only the physics differs.
 
-    python benchmarks/bench_paper_agent.py --checkpoint gangstr.pt [--seeds 1 2 3] [--goals 60]
+    python benchmarks/bench_paper_agent.py --checkpoint paper [--seeds 1 2 3] [--goals 60]
         [--plan-on oracle] [--out results.json]
 
-The paper's file is not in the repository (it has no licence): get it from the authors' repository.
+The paper's file is not in the repository (it has no licence): `paper` fetches it once from the authors'
+repository into a cache (docs/training.md), or give the path of a copy.
 """
 
 import argparse
@@ -38,7 +39,7 @@ def tipped_share(segments: list, n_blocks: int) -> tuple[int, int]:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", required=True, help="the paper's gangstr.pt (or one of our checkpoints)")
+    parser.add_argument("--checkpoint", required=True, help="paper (the authors' file), its path, or ours")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--goals", type=int, default=60, help="evaluation goals per class and seed")
     parser.add_argument("--plan-on", default="oracle", choices=["oracle", "agent"])
@@ -60,8 +61,9 @@ def main():
     gh.run_segments = counted
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        checkpoint = Path(tmp) / Path(ns.checkpoint).name
-        shutil.copy(ns.checkpoint, checkpoint)
+        source = plumbing.paper_file("--checkpoint") if ns.checkpoint == "paper" else ns.checkpoint
+        checkpoint = Path(tmp) / Path(source).name
+        shutil.copy(source, checkpoint)
         for seed in ns.seeds:
             argv = ["--eval-only", "--checkpoint", str(checkpoint), "--plan-on", ns.plan_on, "--seed", str(seed),
                     "--eval-goals-per-class", str(ns.goals), "--threads", "1"]  # fmt: skip

@@ -3,7 +3,7 @@
 others). It starts the run itself, then prints what the run opened and how many picks it took.
 (README.md, section "You as the social partner": the ten-minute demo.)
 
-    python benchmarks/scripted_person.py -- --n-blocks 5 --init-from gangstr.pt --n-updates 0 \
+    python benchmarks/scripted_person.py -- --n-blocks 5 --init-from paper --n-updates 0 \
         --freeze-normalizer --sp-ratio 0.1 --n-epochs 6 --eval-goals-per-class 6 --exp-name teach
 
 Everything after -- goes to gangstr_hme.py (which gets --partner person --person-port 0 added).

@@ -1,16 +1,21 @@
 """The paper's own trained agent (the authors' hipstr/gangstr.pt): its file format loads into our
 networks (--checkpoint, --init-from), a file holding anything else is refused unrun, evaluation can plan on
-the oracle graph (--plan-on oracle), and --init-from starts a run that resumes like any other."""
+the oracle graph (--plan-on oracle), --init-from starts a run that resumes like any other, and `paper` fetches
+the file once into a cache (from a local server here: no test reaches the internet)."""
 
 import csv
 import hashlib
+import http.server
 import json
 import os
 import pathlib
+import socket
 import subprocess
 import sys
+import threading
 from collections import OrderedDict
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -349,3 +354,102 @@ def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
     assert "epoch 0, sub-goals planned on the oracle's graph" in out.stdout
     result = json.loads((tmp_path / "eval_agent_epoch0_seed0_oracle.json").read_text())
     assert result["planner"] == "oracle" and result["agent"] == "ours" and result["epoch"] == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. `paper`: the authors' file fetched on request into a cache, here from a server on 127.0.0.1
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture
+def served(tmp_path, monkeypatch):
+    """A 3-block file in the paper's format served on a free local port as plumbing.PAPER_URL, with its hash as
+    PAPER_SHA256, and a cache (XDG_CACHE_HOME) not yet made: the file's bytes, where the cache keeps it, the
+    requests served."""
+    data_path = tmp_path / "served.pt"
+    write_paper_file(data_path, our_agent(3))
+    data, requests = data_path.read_bytes(), []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            requests.append(self.path)
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    monkeypatch.setattr(plumbing, "PAPER_URL", f"http://127.0.0.1:{server.server_address[1]}/hipstr/gangstr.pt")
+    monkeypatch.setattr(plumbing, "PAPER_SHA256", hashlib.sha256(data).hexdigest())
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    yield SimpleNamespace(data=data, cache=tmp_path / "cache" / "hme-gangstr" / "gangstr.pt", requests=requests,
+                          server=server)  # fmt: skip
+    server.shutdown()
+    server.server_close()
+
+
+def files_under(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def parse(*argv):
+    return plumbing.parse_command_line(gh.Args, gh.check_sampler_args, [*argv, "--threads", "1"])
+
+
+def test_paper_is_downloaded_once_checked_and_kept_in_the_cache_then_read_from_it_without_the_network(served):
+    args, state, _ = parse("--eval-only", "--checkpoint", "paper")
+    assert served.requests == ["/hipstr/gangstr.pt"] and served.cache.read_bytes() == served.data
+    assert list(served.cache.parent.iterdir()) == [served.cache]  # no partial file beside it
+    assert args.checkpoint == str(served.cache) and state["format"] == "paper" and args.n_blocks == 3
+    served.server.shutdown()
+    served.server.server_close()  # the network gone: the cache alone serves --init-from paper now
+    args, _, init = parse("--init-from", "paper")
+    assert args.init_from == str(served.cache) and init["format"] == "paper" and len(served.requests) == 1
+
+
+@pytest.mark.parametrize(
+    "failure, says",
+    [
+        ("offline", "Connection refused"),
+        ("wrong hash", "invalid hash value"),
+        ("silent server", "timed out"),
+        ("another file in the cache", "is not the authors' file"),
+    ],
+)
+def test_paper_offline_on_a_wrong_hash_or_from_a_silent_server_exits_2_with_one_line_and_leaves_the_cache_as_it_was(
+    served, tmp_path, monkeypatch, capsys, failure, says
+):
+    if failure != "offline":  # a cache folder already there keeps nothing new (offline: none is made)
+        served.cache.parent.mkdir(parents=True)
+    unanswered = socket.socket()
+    unanswered.bind(("127.0.0.1", 0))  # bound but not listening: connections refused, as offline
+    reset = threading.Timer(10, unanswered.close)  # a client still waiting then is reset: no test hangs
+    if failure == "silent server":
+        unanswered.listen()  # connections accepted, never answered
+        monkeypatch.setattr(plumbing, "PAPER_TIMEOUT", 0.5)
+        reset.start()
+    if failure in ("offline", "silent server"):
+        monkeypatch.setattr(plumbing, "PAPER_URL", f"http://127.0.0.1:{unanswered.getsockname()[1]}/gangstr.pt")
+    elif failure == "wrong hash":
+        monkeypatch.setattr(plumbing, "PAPER_SHA256", hashlib.sha256(b"the authors' file").hexdigest())
+    else:
+        served.cache.write_bytes(b"a file put there by hand")
+    before = files_under(tmp_path / "cache")
+    with pytest.raises(SystemExit) as e:
+        gh.main(["--eval-only", "--checkpoint", "paper", "--threads", "1", "--runs-dir", str(tmp_path / "runs")])
+    reset.cancel()
+    unanswered.close()
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert says in err and f"{plumbing.PAPER_URL} and put it at {served.cache}" in err, err
+    assert files_under(tmp_path / "cache") == before and not (tmp_path / "runs").exists()
+    assert (tmp_path / "cache").exists() == (failure != "offline")
+
+
+def test_a_bad_flag_beside_paper_exits_2_before_anything_is_downloaded(served, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        gh.main(["--init-from", "paper", "--init-prior-count", "0", "--runs-dir", str(tmp_path / "runs")])
+    assert e.value.code == 2 and "--init-prior-count" in capsys.readouterr().err
+    assert served.requests == [] and not (tmp_path / "cache").exists()
