@@ -75,11 +75,16 @@ class Args:
     internalization_prob: float = 0.5
     """probability that a non-social cycle rehearses a failed social proposal (0 = the 'NI' ablation)"""
     ask_after: int = 0
-    """beyond the paper (SPEC §7.1): the learner asks the partner for help once its semantic graph has gained
-    no node for this many cycles (0 = it never asks: the coin, --sp-ratio, alone brings the partner)"""
+    """beyond the paper (SPEC §7.1, learner_query.py): the learner asks the partner for help once its progress
+    (--ask-progress) has stalled for this many cycles (0 = it never asks: the coin, --sp-ratio, alone brings it)"""
     help_cycles: int = 3
     """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
-    social cycle that added no node to the semantic graph (the partner had nothing new to show)"""
+    social cycle that added no progress (the partner had nothing new to show)"""
+    ask_progress: str = "nodes"
+    """the query's progress: 'nodes' of the semantic graph or its SR 'classes' (the kinds of transition made)"""
+    learner_picks: str = ""
+    """beyond the paper: the learner picks among the partner's candidates by 'novelty' or 'zpd' (the critic's
+    reach, then novelty); '' = the partner's uniform draw (the paper's)"""
     partner: str = "oracle"
     """who chooses the partner's goals: 'oracle' (the paper's simulated partner, uniform draws) or 'person'
     (you, at a page the run serves: README.md, section "You as the social partner")"""
@@ -1074,7 +1079,7 @@ class Sampler:
 # ------------------------------------------------------------------------------------------------
 class GoalSampler(Sampler):
     """HME (SPEC §7): each cycle is social with probability sp_ratio (the paper's Algorithm 2), or when the
-    learner has asked for help (asks_for_help, off by default); otherwise it rehearses a failed social
+    learner has asked for help (learner_query.Query, off by default); otherwise it rehearses a failed social
     proposal with probability internalization_prob, if there is one (Algorithm 1's first branch), else it
     is autotelic (its second, Sampler.autotelic_cycle)."""
 
@@ -1086,25 +1091,29 @@ class GoalSampler(Sampler):
 
             clock = lambda: divmod(learner.segments // (args.n_segments * len(workers)), args.n_cycles)  # noqa: E731
             self.sp = person_partner.PersonPartner(self.sp, args, clock, count=lambda k: self.stats.update([k]))
+        self.query = None  # beyond the paper (SPEC §7.1): learner_query.py, imported only when its flags are set
+        if args.ask_after or args.learner_picks:
+            import learner_query  # noqa: PLC0415
+
+            self.query = learner_query.Query(args, learner) if args.ask_after else None
+            if args.learner_picks:  # the learner picks among the partner's candidates
+                self.sp = learner_query.LearnerPicks(self.sp, args, learner, split_obs)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
         names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
         kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # goals proposed; goals reached (count)
         self.partner_counts = [f"sp_{kind}_{k}" for kind in kinds for k in names]
         for w in workers:
             w.new_pairs = []  # pairs it failed this cycle, not yet merged with the other workers'
-        # the learner's query (asks_for_help): the graph's size and the cycle it was read at, cycles without
-        # a new node, and the help given so far in a row (0: none asked)
-        self.query = dict(nodes=0, read_at=-1, stalled=0, helped=0)
 
     def cycle(self, w: Worker):
         args = self.args
         self.stats["cycles"] += 1
-        helped = self.asks_for_help()  # the same answer for every worker: decided from what they share
+        helped = self.query is not None and self.query.asks()  # the same for every worker: read from what they share
         coin = args.sp_ratio > 0 and w.rng.random() < args.sp_ratio  # --sp-ratio
         if helped or coin:
             self.stats["social_cycles"] += 1
             self.stats["help_cycles"] += helped
-            self.stats["queries"] += helped and self.query["helped"] == 1 and w.index == 0  # once, by worker 0
+            self.stats["queries"] += helped and self.query.state["helped"] == 1 and w.index == 0  # by worker 0
             proposed = yield from self.social_cycle(w)
             self.stats["help_nothing"] += helped and not proposed
         elif self.internalization_buffer and w.rng.random() < args.internalization_prob:  # --internalization-prob
@@ -1211,33 +1220,6 @@ class GoalSampler(Sampler):
             if arrived and w.left > 0:
                 yield Request(beyond, deterministic=False)
 
-    # --- beyond the paper: the learner asks for help (SPEC §7.1; the paper's Conclusion) -------------
-    def asks_for_help(self) -> bool:
-        """Whether this cycle is help the learner asked for (--ask-after, --help-cycles). The paper ends on
-        "an automatic competence-based query mechanism from the learner"; this one reads only the learner's
-        own semantic graph (never the oracle or the stepping stones, which only the partner sees):
-          - stalled: cycles in a row whose segments added no node to the graph (SPEC §6);
-          - once stalled reaches ask_after, the learner asks (a query): the next cycle is social;
-          - the help goes on, one social cycle after another, while each adds a node to the graph, for
-            help_cycles cycles at most; then stalled counts again from 0.
-        The graph is the same in every process (SPEC §11), so every worker gets the same answer, and no
-        random draw is made: the coin's stream (--sp-ratio) is unchanged. Read once a cycle, by the first
-        worker to start it (the graph has learnt from the previous cycle by then)."""
-        q, args, graph = self.query, self.args, self.learner.graph
-        if args.ask_after == 0:
-            return False
-        if q["read_at"] != self.learner.segments:  # a new cycle: the previous one's outcome is in the graph
-            q["read_at"], grew, q["nodes"] = self.learner.segments, graph.n_nodes > q["nodes"], graph.n_nodes
-            if q["helped"] and grew and q["helped"] < args.help_cycles:
-                q["helped"] += 1  # the help goes on
-            elif q["helped"]:
-                q["helped"] = q["stalled"] = 0  # the help is over
-            else:
-                q["stalled"] = 0 if grew else q["stalled"] + 1
-                if q["stalled"] >= args.ask_after:
-                    q["helped"] = 1  # the query
-        return q["helped"] > 0
-
     # --- bookkeeping: logs, what workers share, checkpoints ---------------------------------------
     def count(self, kind: str, goal: int):
         """One of the partner's goals in its class: proposed ('frontier', 'beyond'), or the agent reached
@@ -1268,8 +1250,8 @@ class GoalSampler(Sampler):
         return super().epoch_stats() | dict(
             social_share=counts["social_cycles"] / cycles,
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
-            **{k: counts[k] for k in queries},  # the learner's query (asks_for_help): counts this epoch
-            stalled_cycles=self.query["stalled"],  # its signal at the epoch's end
+            **{k: counts[k] for k in queries},  # the learner's query (learner_query.Query): counts this epoch
+            stalled_cycles=self.query.state["stalled"] if self.query else 0,  # its signal at the epoch's end
             **({k: counts[k] for k in PERSON_COUNTS} if self.args.partner == "person" else {}),
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
@@ -1285,15 +1267,13 @@ class GoalSampler(Sampler):
             self.sp.close()
 
     def state_dict(self) -> dict:
-        return dict(
-            internalization=torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2),
-            query=torch.tensor(list(self.query.values()), dtype=torch.int64),
-        )
+        pairs = torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2)
+        return dict(internalization=pairs) | (dict(query=self.query.state_dict()) if self.query else {})
 
     def load_state_dict(self, s: dict):
         self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
-        if "query" in s:  # a checkpoint written before the learner could ask has none: it never asked
-            self.query = dict(zip(self.query, s["query"].tolist(), strict=True))
+        if self.query is not None and "query" in s:  # one written before the learner could ask has none
+            self.query.load_state_dict(s["query"])
 
 
 STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
@@ -1312,6 +1292,11 @@ def check_sampler_args(a: Args) -> str | None:
         return f"--ask-after must be 0 (never ask) or more, got {a.ask_after}"
     if a.help_cycles < 1:
         return f"--help-cycles must be 1 or more, got {a.help_cycles}"
+    if a.learner_picks or a.ask_progress != Args.ask_progress:  # beyond the paper: that file's own options
+        import learner_query  # noqa: PLC0415
+
+        if (problem := learner_query.check_args(a)) is not None:
+            return problem
     if a.partner not in PARTNERS:
         return f"--partner must be one of {', '.join(PARTNERS)}, got {a.partner!r}"
     if not (math.isfinite(a.person_timeout) and a.person_timeout > 0):

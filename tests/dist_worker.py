@@ -18,7 +18,8 @@ import gangstr_hme as gh  # noqa: E402
 import plumbing  # noqa: E402
 
 TINY = dict(n_blocks=3, n_cycles=3, n_segments=4, n_updates=2, batch_size=16, segment_len=10, stable_steps=3,
-            eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3, ask_after=1)  # fmt: skip
+            eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3, ask_after=1,
+            learner_picks="zpd")  # fmt: skip
 
 
 def fixed_batch(seed: int, n: int = 16) -> dict:
@@ -49,9 +50,10 @@ def main(out: Path, num_envs: int):
     sac.update({k: np.concatenate([b[k] for b in mine]) for k in mine[0]})
     after_one = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in nets}
     grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in nets}
-    first_cycle, first_normalizer = [], None
+    first_cycle, first_normalizer, goals = [], None, []
     for cycle in range(args.n_cycles):
         learner.learn_from(gh.run_cycle(run))
+        goals.append([[gh.og.to_mask(s.g) for s in w.segments] for w in run.workers])  # the picks among them
         if cycle == 0:  # each worker's segments: goal, start and final configs, success; the statistics
             first_cycle = [[(gh.og.to_mask(s.g), s.start, s.final, s.success) for s in w.segments]
                            for w in run.workers]  # fmt: skip
@@ -77,7 +79,9 @@ def main(out: Path, num_envs: int):
         segments=learner.segments,
         buffer_size=learner.buffer.size,
         world=plumbing.world(),
-        query=torch.tensor(list(run.sampler.query.values())),
+        query=run.sampler.query.state_dict(),
+        goals=torch.tensor(goals, dtype=torch.int64).transpose(0, 1),  # (workers, cycles, segments)
+        proposed=sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond_") and "_reached_" not in k),
         help_cycles=run.sampler.stats["help_cycles"],
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")

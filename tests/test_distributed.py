@@ -99,6 +99,9 @@ def test_two_workers_in_one_process_run_what_two_processes_run(workers, lockstep
     # ... the same help the learner asked for (decided from the shared graph), given to both workers ...
     assert torch.equal(lockstep["query"], r0["query"]) and torch.equal(r0["query"], r1["query"])
     assert lockstep["help_cycles"] == r0["help_cycles"] + r1["help_cycles"] > 0
+    # ... the same goals in every cycle, the learner's picks among the partner's candidates included ...
+    assert torch.equal(lockstep["goals"], torch.cat([r0["goals"], r1["goals"]]))
+    assert lockstep["proposed"] == r0["proposed"] + r1["proposed"] > 0
     # ... the same normalizer statistics (to float tolerance: one forward pass acts for both workers, which
     # rounds differently from two) ...
     torch.testing.assert_close(lockstep["normalizer"], r0["normalizer"], rtol=1e-5, atol=1e-4)
@@ -172,7 +175,7 @@ def test_the_baselines_train_with_two_workers(tmp_path, script):
 TWO = ["--n-blocks", "3", "--n-cycles", "2", "--n-segments", "4", "--n-updates", "3", "--batch-size", "16",
        "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "3", "--threads", "1", "--seed", "3",
        "--num-envs", "2"]  # fmt: skip
-HME = ["--sp-ratio", "0.3", "--ask-after", "1"]  # gangstr_hme.py's sampler: the coin and the learner's query
+HME = ["--sp-ratio", "0.3", "--ask-after", "1", "--learner-picks", "zpd"]  # the coin, the learner's query and picks
 TIMING = ("time_", "steps_per_second")
 
 

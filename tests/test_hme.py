@@ -461,7 +461,7 @@ def answers(run, growth: list[int], asks_per_cycle: int = 1) -> list[bool]:
         while run.learner.graph.n_nodes < target:
             run.learner.graph.add_config(next(fresh))
         run.learner.segments += run.args.n_segments  # a cycle's segments: the learner's clock
-        said.append({run.sampler.asks_for_help() for _ in range(asks_per_cycle)})
+        said.append({run.sampler.query is not None and run.sampler.query.asks() for _ in range(asks_per_cycle)})
     assert all(len(s) == 1 for s in said)  # every worker of a cycle gets the same answer
     return [s.pop() for s in said]
 
@@ -482,7 +482,7 @@ def test_help_goes_on_while_each_social_cycle_adds_a_node_for_help_cycles_at_mos
     # asks at cycle 2; cycles 2 and 3 added nodes, so 3 and 4 are help too; 4 is the third: the help is over
     # at 5 (which still grew: the count of cycles without a new node starts again after it)
     assert said == [False, True, True, True, False, False, False, True, False, False, False, True]
-    assert run.sampler.query["stalled"] == 2
+    assert run.sampler.query.state["stalled"] == 2
 
 
 def test_queries_help_cycles_and_help_with_nothing_proposed_are_counted(monkeypatch):

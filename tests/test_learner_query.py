@@ -1,0 +1,268 @@
+"""learner_query.py, beyond the paper (SPEC §7.1): the learner picks among the social partner's candidates
+(--learner-picks), and what its query counts as progress (--ask-progress)."""
+
+import csv
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from chisquare import uniform_pvalue
+from test_hme import TINY, answers, hme_run, random_agent_graph, stream
+
+import gangstr_hme as gh
+import learner_query as lq
+import oracle_graph as og
+
+N = 3
+SIGNALS = list(lq.PICKS)
+
+
+def picks_on(graph, signal: str, **kw):
+    """The learner's picks over the partner of a 3-block run (its critic: the run's fresh one)."""
+    run = hme_run(learner_picks=signal, **kw)
+    run.learner.graph = graph
+    return run.sampler.sp, run
+
+
+def brute_novelty(graph, candidate: int) -> int:
+    """The unordered pairs of the candidate's true predicates (one with itself included) that no node of
+    the agent's graph holds together, in plain Python."""
+    true = np.flatnonzero(og.from_mask(candidate, N) > 0)
+    nodes = [set(np.flatnonzero(og.from_mask(m, N) > 0)) for m in graph.masks]
+    pairs = itertools.combinations_with_replacement(true, 2)
+    return sum(not any(i in n and j in n for n in nodes) for i, j in pairs)
+
+
+def safest_cost(graph, start: int, goal: int) -> float:
+    """The sum of -log SR along gangstr_hme's safest path (its Dijkstra), 0 when start is goal."""
+    path = gh.safest_path(graph, start, goal, np.random.default_rng(0)) or [start]
+    cost = -np.log(np.clip(graph.sr, 1e-12, 1.0))
+    return sum(cost[graph.edge_class(u, v)] for u, v in zip(path, path[1:], strict=False))
+
+
+@pytest.mark.parametrize("signal", SIGNALS)
+@pytest.mark.parametrize("seed", range(3))
+def test_a_pick_is_always_one_of_the_offered_candidates(signal, seed):
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, seed, p_node=0.4, p_edge=0.3)
+    picks, run = picks_on(graph, signal)
+    w = run.workers[0]
+    for here in graph.masks[:: max(1, graph.n_nodes // 12)]:
+        frontier = sp.frontier_candidates(graph, here)
+        beyond = sp.beyond_candidates(graph, here)
+        f, b = picks.frontier_goal(graph, here, w), picks.beyond_goal(graph, here, w)
+        assert (f is None) == (len(frontier) == 0) and (f is None or f in frontier)
+        assert (b is None) == (len(beyond) == 0) and (b is None or b in beyond)
+
+
+@pytest.mark.parametrize("signal", SIGNALS)
+def test_the_same_state_gives_the_same_pick(signal):
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, 5, p_node=0.4, p_edge=0.3)
+    picks, run = picks_on(graph, signal)
+    w, said = run.workers[0], []
+    for _ in range(2):  # the same graph, critic, place and stream: the same picks
+        w.rng = np.random.default_rng(9)
+        said.append([(picks.frontier_goal(graph, m, w), picks.beyond_goal(graph, m, w)) for m in graph.masks[:20]])
+    assert said[0] == said[1]
+
+
+def test_novelty_counts_the_pairs_of_facts_the_agent_has_seen_together_as_the_graph_grows():
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, 1, p_node=0.2, p_edge=0.0)
+    picks, _ = picks_on(graph, "novelty")
+    candidates = sp.oracle.masks
+    for grow in range(3):  # the counts follow the graph as it grows between picks
+        got = picks.novelty(graph, candidates)
+        assert got.tolist() == [brute_novelty(graph, int(c)) for c in candidates]
+        for m in sp.oracle.masks[grow * 7 : grow * 7 + 7]:
+            graph.add_config(int(m))
+
+
+def test_novelty_changes_its_pick_with_what_the_agent_has_seen():
+    here = int(og.to_mask(og.make_config(N, close=[(0, 1)])))
+    offered = gh.SocialPartner(N).beyond_candidates(gh.SemanticGraph(N, gh.Args(n_blocks=N)), here)
+    classes = og.evaluation_classes(N)
+    picked = {}
+    for known in ("S2", "C2"):  # an agent that has stacked two blocks, or put three blocks close
+        graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+        for m in [here, *og.to_mask(classes[known]).tolist()]:
+            graph.add_config(int(m))
+        picks, run = picks_on(graph, "novelty")
+        picked[known] = picks.beyond_goal(graph, here, run.workers[0])
+        brute = np.array([brute_novelty(graph, int(c)) for c in offered])
+        assert picked[known] in offered[brute == brute.max()]
+    assert og.from_mask(picked["C2"], N)[3:].max() > 0  # a stack: "above" holds in none of its nodes
+    assert og.from_mask(picked["S2"], N)[3:].max() < 0  # blocks close together, none on another
+
+
+def test_zpd_picks_by_novelty_among_the_goals_the_critic_expects_to_reach_within_a_segment(monkeypatch):
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, 2, p_node=0.3, p_edge=0.2)
+    picks, run = picks_on(graph, "zpd")
+    w, here = run.workers[0], graph.masks[0]
+    offered = sp.beyond_candidates(graph, here)
+    assert len(offered) >= 3
+    novelty = picks.novelty(graph, offered)
+    order = np.argsort(-novelty, kind="stable")
+    threshold = run.args.gamma**run.args.segment_len * 10.0  # the value of the config it stands on: 10
+    value = np.full(len(offered), threshold - 1.0)  # out of reach ...
+    value[order[1:]] = threshold  # ... but for all but the most novel: the next most novel is picked
+    monkeypatch.setattr(picks, "values", lambda w, c: (value, 10.0))
+    assert picks.beyond_goal(graph, here, w) in offered[order[1:]][novelty[order[1:]] == novelty[order[1]]]
+    value[order[0]] = threshold  # the critic now reaches the most novel one too
+    assert picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]
+    value[:] = threshold - 5.0  # nothing within reach: the candidate of highest value
+    value[order[-1]] = threshold - 2.0
+    assert picks.beyond_goal(graph, here, w) == offered[order[-1]]
+    novelty_picks, _ = picks_on(graph, "novelty")
+    assert novelty_picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]  # novelty: no critic
+
+
+def test_zpd_values_are_the_smaller_twin_of_the_deterministic_action_from_where_the_agent_stands():
+    sp = gh.SocialPartner(N)
+    picks, run = picks_on(gh.SemanticGraph(N, gh.Args(n_blocks=N)), "zpd")
+    w, agent = run.workers[0], run.learner.agent
+    w.env.reset()
+    for p in agent.critic.parameters():  # a critic whose value depends on the goal (biases are 0 at init)
+        torch.nn.init.normal_(p, std=0.3)
+    here = gh.current_config(w.env)
+    offered = sp.beyond_candidates(gh.SemanticGraph(N, gh.Args(n_blocks=N)), here)
+    value, stay = picks.values(w, offered)
+    now = w.env.set_goal(w.env.goal)
+    goals = og.from_mask(np.append(offered, here), N).astype(np.float32)
+    k = len(goals)
+    obs, ag = np.repeat(now["observation"][None], k, 0), np.repeat(now["achieved_goal"][None], k, 0)
+    action = agent.act(obs, ag.astype(np.float32), goals)  # the deterministic policy's action
+    o = torch.from_numpy(agent.normalizer(obs.astype(np.float32)))
+    body, blocks = gh.split_obs(o, N)
+    with torch.no_grad():
+        msg = agent.critic.messages(agent.gi, blocks, torch.from_numpy(goals - ag.astype(np.float32)))
+        q1, q2 = agent.critic.q(body, blocks, torch.from_numpy(action), msg)
+    want = torch.minimum(q1, q2).numpy()
+    np.testing.assert_allclose(np.append(value, stay), want, rtol=1e-5, atol=1e-5)
+    assert len(set(np.round(value, 4))) > 1  # the candidates' values differ
+
+
+@pytest.mark.parametrize("signal", SIGNALS)
+def test_ties_are_drawn_uniformly_from_the_workers_stream(signal):
+    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))  # no node: every candidate equally novel
+    picks, run = picks_on(graph, signal)
+    if signal == "zpd":
+        picks.values = lambda w, c: (np.ones(len(c)), 1.0)  # all within reach
+    offered = np.arange(5, dtype=np.int64) * 3 + 1
+    counts = np.zeros(5)
+    w = stream(0)
+    for _ in range(1000):
+        counts[list(offered).index(picks.pick(w, offered, np.zeros(5)))] += 1
+    assert uniform_pvalue(counts) > 1e-4
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_zpd_goes_to_the_stepping_stone_its_graph_is_surest_to_arrive_at(seed):
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, seed, p_node=0.5, p_edge=0.4)
+    rng = np.random.default_rng(seed)
+    graph.sr = rng.uniform(0.05, 1.0, len(graph.sr)).tolist()  # success estimates that differ
+    picks, run = picks_on(graph, "zpd")
+    w = run.workers[0]
+    for here in graph.masks[:: max(1, graph.n_nodes // 8)]:
+        offered = sp.frontier_candidates(graph, here)
+        if not len(offered):
+            continue
+        want = np.array([-safest_cost(graph, here, int(c)) for c in offered])
+        np.testing.assert_allclose(picks.arrival(graph, here, offered), want, atol=1e-9)
+        assert picks.frontier_goal(graph, here, w) in offered[want >= want.max() - 1e-9]
+
+
+def test_zpd_changes_its_frontier_when_the_success_estimates_change():
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, 4, p_node=0.6, p_edge=0.5)
+    picks, run = picks_on(graph, "zpd")
+    w, here = run.workers[0], graph.masks[0]
+    offered = sp.frontier_candidates(graph, here)
+    away = offered[offered != here]
+    assert len(away) >= 2
+    graph.sr = [0.5] * len(graph.sr)
+    first = picks.frontier_goal(graph, here, w)
+    target = int(away[-1])  # make every edge but those on one path to `target` nearly hopeless
+    path = gh.safest_path(graph, here, target, np.random.default_rng(0))
+    on_path = {graph.edge_class(u, v) for u, v in zip(path, path[1:], strict=False)}
+    graph.sr = [0.999 if c in on_path else 0.01 for c in range(len(graph.sr))]
+    if here in offered:  # where it stands is surest of all (1): leave it out of the comparison
+        offered = away
+    assert picks.pick(w, offered, picks.arrival(graph, here, offered)) == target
+    assert first is not None
+
+
+def renamed_classes(monkeypatch):
+    """Every evaluation class under another name, and each name given to another class's configs."""
+    real = og.evaluation_classes(N)
+    names = list(real)
+    fake = {f"class{i}": real[names[(i + 1) % len(names)]] for i in range(len(names))}
+    monkeypatch.setattr(og, "evaluation_classes", lambda n: fake if n == N else real)
+    monkeypatch.setattr(gh.og, "evaluation_classes", lambda n: fake if n == N else real)
+
+
+@pytest.mark.parametrize("signal", SIGNALS)
+def test_no_signal_reads_a_class_table_renaming_the_evaluation_classes_changes_no_pick(signal, monkeypatch):
+    def goals() -> list[int]:
+        torch.manual_seed(0)  # the same critic
+        run, said = hme_run(learner_picks=signal, n_segments=6, segment_len=6, stable_steps=2, seed=4), []
+        for _ in range(4):
+            run.learner.learn_from(gh.run_cycle(run))
+            said += [og.to_mask(s.g) for s in run.workers[0].segments]
+        return said, run
+
+    before, run_before = goals()
+    renamed_classes(monkeypatch)
+    after, run_after = goals()
+    assert before == after
+    assert run_after.sampler.partner_counts != run_before.sampler.partner_counts  # the classes were renamed
+
+
+def test_learner_picks_change_what_the_partner_proposes(tmp_path):
+    rows = {}
+    for signal in ("", "novelty"):
+        flags = [*TINY, "--sp-ratio", "1", "--n-cycles", "4", "--seed", "2", "--learner-picks", signal]
+        assert gh.main([*flags, "--runs-dir", str(tmp_path / (signal or "uniform"))]) == 0
+        (folder,) = (tmp_path / (signal or "uniform")).iterdir()
+        (rows[signal],) = csv.DictReader((folder / "progress.csv").open())
+    proposed = {s: [r[k] for k in r if k.startswith("sp_beyond_") and "_reached_" not in k] for s, r in rows.items()}
+    assert sum(map(float, proposed["novelty"])) > 0 and proposed[""] != proposed["novelty"]
+
+
+def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
+    # nodes come, but no new kind of transition: with 'classes' the learner asks, with 'nodes' it does not
+    for progress, want in (("classes", True), ("nodes", False)):
+        run = hme_run(sp_ratio=0.0, ask_after=3, help_cycles=2, ask_progress=progress)
+        assert any(answers(run, [1] * 8)) == want
+    run = hme_run(sp_ratio=0.0, ask_after=3, help_cycles=2, ask_progress="classes")
+    graph, fresh = run.learner.graph, iter(range(1, 2 ** og.config_dim(N)))
+    graph.add_config(0)
+    said = []
+    for _ in range(8):  # a new SR class every cycle: never stalled
+        classes = len(graph.sr)
+        while len(graph.sr) == classes:  # (a permutation of an earlier edge is no new class)
+            m = next(fresh)
+            graph.add_config(m)
+            graph.edge_class(0, m)
+        run.learner.segments += run.args.n_segments
+        said.append(run.sampler.query.asks())
+    assert not any(said)
+
+
+@pytest.mark.parametrize(
+    "flags, says",
+    [
+        (["--learner-picks", "best"], "--learner-picks must be one of novelty, zpd"),
+        (["--ask-progress", "edges"], "--ask-progress must be one of nodes, classes"),
+        (["--learner-picks", "zpd", "--sp-ratio", "0"], "--learner-picks needs social cycles"),
+        (["--learner-picks", "zpd", "--sp-ratio", "0.2", "--partner", "person"], "give one of them"),
+    ],
+)
+def test_bad_learner_options_exit_2_naming_the_value_before_anything_is_written(tmp_path, capsys, flags, says):
+    with pytest.raises(SystemExit) as e:
+        gh.main([*TINY, *flags, "--runs-dir", str(tmp_path / "runs")])
+    assert e.value.code == 2 and says in capsys.readouterr().err and not (tmp_path / "runs").exists()
