@@ -18,7 +18,8 @@ agent stands (an untried neighbour). The agent then pursues the pick as it would
   nothing.
 - picks.csv in the run folder records every question (PICK_COLUMNS); progress.csv counts the person's
   picks, skips and timeouts per epoch.
-Standard library only (http.server in a thread, zlib for the PNG frames), besides numpy and mujoco.
+Standard library only (http.server in a thread, zlib for the PNG frames), besides numpy, mujoco and
+plumbing's quiet check that MuJoCo can render.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 import oracle_graph as og
+import plumbing
 
 COLOURS = [("red", "#d93333"), ("blue", "#338cd9"), ("green", "#40b34d"), ("yellow", "#f2bf26"), ("purple", "#994dbf")]
 FRAME = 360  # rendered frames are FRAME x FRAME pixels
@@ -252,7 +254,10 @@ class PersonPartner:
             self.picks.flush()
 
     def frame(self, w) -> bytes | None:
-        """The worker's scene now, as PNG (None where no renderer can be made: the page says why)."""
+        """The worker's scene now, as PNG; None where MuJoCo cannot render: the page says why beside the scene,
+        the terminal once (asked first of plumbing.rendering_problem, which tries quietly: no GLFW warnings)."""
+        if not self.renderers and self.render_problem is None:
+            self.no_pictures(plumbing.rendering_problem())
         if self.render_problem is not None:
             return None
         try:
@@ -263,9 +268,15 @@ class PersonPartner:
             r = self.renderers[w.index]
             r.update_scene(w.env.data, camera="external")
             return png(np.ascontiguousarray(r.render()))
-        except Exception as e:  # no GL here: questions go on without pictures of the scene
-            self.render_problem = f"{type(e).__name__}: {e}"
+        except Exception as e:  # noqa: BLE001 (no GL here: questions go on without pictures of the scene)
+            self.no_pictures(f"{type(e).__name__}: {' '.join(str(e).split())[:120]}")
             return None
+
+    def no_pictures(self, why: str | None):
+        if why is not None:
+            self.render_problem = f"MuJoCo cannot render here ({why}): install libosmesa6, set MUJOCO_GL=osmesa"
+            print(f"person partner: no pictures of the scene on the page: {self.render_problem}", file=sys.stderr,
+                  flush=True)  # fmt: skip
 
     # --- the server's side (its threads) ----------------------------------------------------------
     def loopback(self) -> bool:
@@ -425,7 +436,7 @@ body{font-family:system-ui,sans-serif;margin:0;background:#f4f4f2;color:#222}
 header{background:#2d3e50;color:#fff;padding:10px 18px}header h1{font-size:18px;margin:0}
 #status{font-size:13px;margin-top:4px;opacity:.9}main{display:flex;gap:18px;padding:14px 18px;flex-wrap:wrap}
 section{background:#fff;border-radius:8px;padding:12px;box-shadow:0 1px 3px #0002}
-#scene img{width:360px;height:360px;border-radius:6px;background:#ddd}
+#scene img{width:360px;height:360px;border-radius:6px;background:#ddd}#noframe{max-width:360px;font-size:13px}
 #cands{display:flex;flex-wrap:wrap;gap:10px;max-width:760px}
 button.candidate{background:#fff;border:2px solid #ccd;border-radius:8px;padding:6px;cursor:pointer;width:170px}
 button.candidate:hover{border-color:#2d7be5}button.skip{margin-top:12px;padding:8px 14px}
@@ -434,7 +445,8 @@ button.candidate:hover{border-color:#2d7be5}button.skip{margin-top:12px;padding:
 </style></head><body>
 <header><h1>Help Me Explore: you are the social partner</h1><div id="status">connecting...</div></header>
 <main>
-<section id="scene"><h3 id="scenetitle">The scene</h3><div id="frame"></div><div id="here"></div></section>
+<section id="scene"><h3 id="scenetitle">The scene</h3><div id="frame"></div><div id="noframe" class="wait"></div>
+<div id="here"></div></section>
 <section id="ask"><h3 id="title">Waiting for the agent to ask...</h3><div id="hint" class="wait"></div>
 <div id="cands"></div><div id="skipbox"></div></section>
 <section id="side"><h3>Last outcome</h3><div id="last" class="wait">none yet</div>
@@ -561,6 +573,7 @@ async function tick() {
     return;
   }
   showRun(s);
+  $("noframe").textContent = s.render_problem ? `No picture of the scene: ${s.render_problem}` : "";
   const q = s.question;
   if (!q) {
     if (shown !== 0) {
@@ -570,7 +583,7 @@ async function tick() {
       $("cands").innerHTML = "";
       $("skipbox").innerHTML = "";
     }
-    $("hint").textContent = s.render_problem ? `(no pictures of the scene: ${s.render_problem})` : "";
+    $("hint").textContent = "";
     return;
   }
   $("hint").textContent = `${q.seconds_left.toFixed(0)} s left, then the oracle draws one`;

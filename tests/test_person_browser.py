@@ -1,7 +1,8 @@
 """The person partner's page in a real browser: Debian's chromium, headless, driven by Selenium through
 Debian's chromedriver. A tiny run with --partner person: the browser waits for a question, clicks a
 candidate, and picks.csv names it as the person's and as the goal of the agent's next segment; a second
-run is left alone with the page open and falls back on the oracle's draw by timeout.
+run is left alone with the page open and falls back on the oracle's draw by timeout; a third cannot render,
+and the page says why beside the scene while its questions wait.
 
 Without chromium these tests skip, except under CI (CI=true), where a missing browser is a failure:
 `.ci/run` installs it. PERSON_PAGE_SCREENSHOT=path saves the page with its first question there (the
@@ -55,10 +56,10 @@ def browser(tmp_path):
     driver.quit()
 
 
-def start(runs: Path, *argv) -> tuple[subprocess.Popen, str]:
+def start(runs: Path, *argv, env: dict | None = None) -> tuple[subprocess.Popen, str]:
     """A tiny --partner person run, and the address it prints."""
     cmd = [sys.executable, "-u", "gangstr_hme.py", *TINY, *argv, "--runs-dir", str(runs)]
-    env = os.environ | dict(PYTHONUNBUFFERED="1")
+    env = (os.environ if env is None else env) | dict(PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     for line in proc.stdout:
         if m := re.search(r"open (http://127\.0\.0\.1:\d+/\?token=\S+) in a browser", line):
@@ -132,3 +133,25 @@ def test_a_run_left_alone_with_the_page_open_finishes_by_timeouts(browser, tmp_p
         proc.communicate()
     rows = picks(tmp_path / "runs")
     assert rows and all(r["by"] == "timeout" and r["picked"] in r["offered"].split() for r in rows)
+
+
+def test_without_pictures_the_reason_stays_beside_the_scene_while_a_question_waits_and_the_terminal_says_it_once(
+    browser, tmp_path
+):
+    from selenium.webdriver.common.by import By  # noqa: PLC0415
+
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MUJOCO_GL")}  # no GL chosen: none
+    proc, address = start(tmp_path / "runs", "--person-timeout", "3", env=headless)
+    try:
+        browser.get(address)
+        wait_for(browser, "button.candidate")  # a question waits, its countdown running
+        assert "s left, then the oracle draws one" in browser.find_element(By.ID, "hint").text
+        reason = browser.find_element(By.CSS_SELECTOR, "#scene #noframe")
+        assert reason.is_displayed() and not browser.find_elements(By.CSS_SELECTOR, "#frame img")
+        assert "no display, and MUJOCO_GL is not set" in reason.text and "MUJOCO_GL=osmesa" in reason.text
+        assert proc.wait(120) == 0
+    finally:
+        proc.kill()
+        out = proc.communicate()[0]
+    about = [line for line in out.splitlines() if re.search("picture|GLFW|DISPLAY|render", line, re.IGNORECASE)]
+    assert len(about) == 1 and "no display, and MUJOCO_GL is not set" in about[0], out[-2000:]
