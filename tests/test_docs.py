@@ -121,4 +121,4 @@ def test_the_readme_is_short_and_opens_with_the_two_commands():
         text,
         flags=re.MULTILINE,
     )
-    assert commands[:2] == ["python gangstr_hme.py --sp-ratio 0.2", "python -m pytest"]
+    assert commands[:2] == ["python gangstr_hme.py --sp-ratio 0.2", "python -m pytest -n 2"]
