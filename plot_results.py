@@ -14,11 +14,14 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
 - discovered_per_class and agent_nodes, for runs that log the agent graph's nodes per class: per class, its
   configurations that are agent-graph nodes; the graph's size;
 - help_vs_discovery, for those runs: one point per run, social cycles in the run (x, log scale) against
-  the hard-class configurations discovered by its last epoch (y; HARD: S3, S2&S2, S2&S3, P3&S2, S4, S5).
+  the hard-class configurations discovered by its last epoch (y; HARD: S3, S2&S2, S2&S3, P3&S2, S4, S5);
+- proposals_per_social_cycle, for conditions whose runs had social cycles: per class, the partner's beyond
+  and frontier proposals per social cycle over the whole run, one bar per condition (mean, min-max over runs).
 And tables.md, the same runs in numbers (Markdown): SR per class by epoch, the epoch at which each class
 first reaches 0.5, the distinct configs met by epoch, the social partner's proposals and what the agent
-reached of them; the configurations discovered per class (by epoch, first epoch, Welch's test at the end)
-and, per run, the help it had (social cycles, the learner's queries) beside the hard classes it opened.
+reached of them, and per condition its proposals per social cycle; the configurations discovered per class
+(by epoch, first epoch, Welch's test at the end) and, per run, the help it had (social cycles, the learner's
+queries) beside the first epoch at which it opened each hard class, with the social cycles by then.
 """
 
 from __future__ import annotations
@@ -286,7 +289,7 @@ def plot_help_vs_discovery(plt, conditions: dict, out: Path):
     markers = "osD^vP*Xh<>"
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for marker, (name, runs) in zip(markers * 4, conditions.items(), strict=False):
-        x = [social_cycles(r).sum() for r in runs]
+        x = [np.nansum(social_cycles(r)) for r in runs]
         y = [hard_discovered(r)[-1] for r in runs]
         ax.scatter(x, y, marker=marker, s=45, alpha=0.7, label=f"{name} ({len(runs)} seed{'s' * (len(runs) > 1)})")
     ax.set_xscale("symlog", linthresh=1)
@@ -299,6 +302,60 @@ def plot_help_vs_discovery(plt, conditions: dict, out: Path):
     ax.grid(alpha=0.3)
     save(fig, out, "help_vs_discovery")
     plt.close(fig)
+
+
+SIDES = ("frontier", "beyond")  # the partner's two proposals of a social cycle (SPEC §7)
+
+
+def proposal_rates(run: dict) -> np.ndarray | None:
+    """The partner's proposals per social cycle over the whole run, (2, classes + "other"): frontier, beyond.
+    Only epochs that log both the proposals and the social share count (a resumed older run's are nan); None
+    for a run without the sp_* columns or without a social cycle."""
+    kinds = [*class_names([run]), "other"]
+    if "social_share" not in run or any(f"sp_{side}_{k}" not in run for side in SIDES for k in kinds):
+        return None
+    proposed = np.array([[run[f"sp_{side}_{k}"] for k in kinds] for side in SIDES])  # (2, kinds, epochs)
+    cycles = social_cycles(run)
+    logged = np.isfinite(cycles) & np.isfinite(proposed).all((0, 1))
+    total = cycles[logged].sum()
+    return proposed[..., logged].sum(-1) / total if total > 0 else None
+
+
+def proposal_rates_by_condition(conditions: dict) -> dict[str, np.ndarray]:
+    """(runs, 2, classes + "other") per condition, of its runs with social cycles; conditions without any left out."""
+    rates = {name: [x for r in runs if (x := proposal_rates(r)) is not None] for name, runs in conditions.items()}
+    return {name: np.array(x) for name, x in rates.items() if x}
+
+
+def plot_proposals_per_social_cycle(plt, conditions: dict, out: Path) -> bool:
+    """Per class, the partner's beyond (top) and frontier (bottom) proposals per social cycle, one bar per
+    condition (mean over its runs with social cycles, whiskers min-max): whether an arm moved which goals
+    the partner proposed, not how many. Log scale where the bars span two orders of magnitude or more."""
+    rates = proposal_rates_by_condition(conditions)
+    if not rates:
+        return False
+    kinds = [*class_names(next(iter(conditions.values()))), "other"]
+    colors = dict(zip(conditions, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4, strict=False))
+    x, width = np.arange(len(kinds)), 0.8 / len(rates)
+    fig, axes = plt.subplots(2, 1, figsize=(max(9.5, 0.25 * len(kinds) * (len(rates) + 1)), 6.5), sharex=True)
+    for ax, side in zip(axes, (1, 0), strict=True):
+        for i, (name, r) in enumerate(rates.items()):
+            mean, low, high = r[:, side].mean(0), r[:, side].min(0), r[:, side].max(0)
+            used = f" ({len(r)} of {len(conditions[name])} runs)" if len(r) < len(conditions[name]) else ""
+            ax.bar(x + (i - (len(rates) - 1) / 2) * width, mean, width, yerr=(mean - low, high - mean),
+                   color=colors[name], capsize=2, error_kw=dict(lw=0.8), label=f"{name}{used}")  # fmt: skip
+        shown = np.concatenate([r[:, side].mean(0) for r in rates.values()])
+        if (shown > 0).any() and shown.max() >= 100 * shown[shown > 0].min():
+            ax.set_yscale("log")
+        ax.set(ylabel=f"{SIDES[side]} proposals\nper social cycle")
+        ax.grid(alpha=0.3, axis="y")
+    axes[1].set_xticks(x, kinds)
+    axes[0].set_title("the social partner's proposals per social cycle, per class (mean, min-max over runs)")
+    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1))
+    fig.tight_layout()
+    save(fig, out, "proposals_per_social_cycle")
+    plt.close(fig)
+    return True
 
 
 # ------------------------------------------------------------------------------------------------
@@ -380,6 +437,21 @@ def tables(conditions: dict, reference: str | None = None) -> str:
                 return f"{arrived} + {beyond}"
 
             out.append(md_table(["run", *kinds], [[lab, *(reached(r, k) for k in kinds)] for lab, r in social]))
+    rates = proposal_rates_by_condition(conditions)
+    if rates:
+        used = [f"{c}: {len(r)} of {len(conditions[c])} runs" for c, r in rates.items()]
+        out.append("\nThe social partner's proposals per social cycle over each whole run (its proposals / its social "
+                   "cycles), beyond, then frontier, mean over the condition's runs with social cycles "
+                   f"({', '.join(used)}; min-max over them):\n")  # fmt: skip
+
+        def rate(r, side, k):
+            v = r[:, side, k]
+            return f"{v.mean():.3g}" + (f" ({v.min():.3g}-{v.max():.3g})" if v.min() < v.max() else "")
+
+        kinds = [*names, "other"]
+        out.append(md_table(["class", *(f"{c}, {SIDES[side]}" for side in (1, 0) for c in rates)],
+                            [[k, *(rate(r, side, i) for side in (1, 0) for r in rates.values())]
+                             for i, k in enumerate(kinds)]))  # fmt: skip
     if has_discoveries(conditions):
         out.append(discovery_tables(conditions, labelled, names, sizes, shown, n, reference))
     return "\n".join(out) + "\n"
@@ -397,7 +469,7 @@ def discovery_tables(
     for cls in names:
         for name, runs in conditions.items():
             found = stack(runs, f"agent_nodes_{cls}")[:, :n]
-            cells = [f"{found[:, e].mean():.1f} ({', '.join(str(int(v)) for v in found[:, e])})" for e in shown]
+            cells = [f"{found[:, e].mean():.1f} ({', '.join(f'{v:.0f}' for v in found[:, e])})" for e in shown]
             rows.append([f"{cls} (of {sizes[cls]})", name, *cells])
     out.append(md_table(["class", "condition", *(f"epoch {e}" for e in shown)], rows))
 
@@ -412,16 +484,16 @@ def discovery_tables(
     out.append(f"\nHelp and discovery per run (epochs 0-{n - 1}): social cycles, the learner's queries and its help "
                "cycles in which the partner had nothing to propose (where logged), hard-class configurations "
                "discovered at the end; per hard class, the first epoch with a discovered configuration and the "
-               "social cycles by its end:\n")  # fmt: skip
+               "social cycles up to its end, \"epoch (social cycles)\", — if never:\n")  # fmt: skip
 
     def first_help(r, cls):
         found = np.flatnonzero(r[f"agent_nodes_{cls}"][:n] > 0)
-        return f"{int(found[0])} ({int(social_cycles(r)[: found[0] + 1].sum())})" if len(found) else "never"
+        return f"{int(found[0])} ({int(np.nansum(social_cycles(r)[: found[0] + 1]))})" if len(found) else "—"
 
     def logged(r, k):
         return str(int(np.nansum(r[k][:n]))) if k in r else "-"
 
-    rows = [[lab, str(int(social_cycles(r)[:n].sum())), logged(r, "queries"), logged(r, "help_nothing"),
+    rows = [[lab, str(int(np.nansum(social_cycles(r)[:n]))), logged(r, "queries"), logged(r, "help_nothing"),
              str(int(hard_discovered(r)[n - 1])), *(first_help(r, c) for c in hard)]
             for lab, r in labelled]  # fmt: skip
     out.append(md_table(["run", "social cycles", "queries", "help, nothing proposed", "hard configs", *hard], rows))
@@ -492,6 +564,8 @@ def main(argv=None) -> int:
         if all("social_share" in r for runs in conditions.values() for r in runs):
             plot_help_vs_discovery(plt, conditions, out)
             made.append("help_vs_discovery")
+    if plot_proposals_per_social_cycle(plt, conditions, out):
+        made.append("proposals_per_social_cycle")
     tmp = out / ".tables.tmp.md"
     tmp.write_text(tables(conditions, args.reference))
     os.replace(tmp, out / "tables.md")

@@ -16,12 +16,12 @@ import plot_results as pr
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 12):
-    """A run folder with a progress.csv shaped like gangstr_hme.py's (3 blocks)."""
+def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 12, blocks: int = 3):
+    """A run folder with a progress.csv shaped like gangstr_hme.py's (3 blocks unless told)."""
     rng = np.random.default_rng(seed)
-    classes = list(og.evaluation_classes(3))
+    classes = list(og.evaluation_classes(blocks))
     folder.mkdir(parents=True)
-    (folder / "config.json").write_text(json.dumps({"n_blocks": 3, "seed": seed}))
+    (folder / "config.json").write_text(json.dumps({"n_blocks": blocks, "seed": seed}))
     rows = []
     for e in range(epochs):
         sr = {c: float(np.clip(level * e / epochs + rng.normal(0, 0.02), 0, 1)) for c in classes}
@@ -48,7 +48,7 @@ def test_plots_are_written_as_png_and_pdf_for_several_conditions_and_seeds(tmp_p
            "--condition", "SP-0%", *map(str, alone), "--reference", "SP-0%", "--out", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    for name in ("global_sr", "sr_per_class", "sp_per_class", "stepping_stones"):
+    for name in ("global_sr", "sr_per_class", "sp_per_class", "stepping_stones", "proposals_per_social_cycle"):
         png, pdf = (out / f"{name}.png").read_bytes(), (out / f"{name}.pdf").read_bytes()
         assert png.startswith(b"\x89PNG") and len(png) > 10_000
         assert pdf.startswith(b"%PDF") and len(pdf) > 5_000
@@ -70,7 +70,8 @@ def test_tables_give_sr_by_epoch_the_first_epoch_at_half_configs_met_and_proposa
     rows = {row[0]: row for row in cells}  # the last table's row of each name
 
     assert "epoch 9 |" in text and "epoch 10" not in text  # cut to the shortest run
-    assert rows["S2"][1:] == ["4", "6", "never (max 0.36)", "never (max 0.27)"]  # first epoch at 0.5
+    first = {row[0]: row[1:] for row in markdown_table_after(text, "First epoch at SR 0.5")}
+    assert first["S2"] == ["4", "6", "never (max 0.36)", "never (max 0.27)"]
     mean_s2 = next(row for row in cells if row[:2] == ["S2", "SP-20%"])
     assert mean_s2[-1] == "0.80 (0.90, 0.70)" and mean_s2[2] == "0.00 (0.00, 0.00)"  # epochs 9 and 0
     assert "(S2 of 6 / S3 of 6 / P3 of 3)" in text
@@ -158,7 +159,9 @@ def test_the_committed_social_partner_runs_still_plot_and_tabulate(tmp_path):
     out = tmp_path / "figures"
     argv = ["--condition", "SP-20%", *map(str, social), "--condition", "SP-0%", *map(str, alone)]
     assert pr.main([*argv, "--reference", "SP-0%", "--out", str(out)]) == 0
-    assert sorted(p.stem for p in out.glob("*.png")) == ["global_sr", "sp_per_class", "sr_per_class", "stepping_stones"]
+    assert sorted(p.stem for p in out.glob("*.png")) == [
+        "global_sr", "proposals_per_social_cycle", "sp_per_class", "sr_per_class", "stepping_stones"
+    ]  # fmt: skip
     cells = [line.strip("| ").split(" | ") for line in (out / "tables.md").read_text().splitlines()]
     first = {row[0]: row[1:] for row in cells if row[0] in ("C1", "S2") and len(row) == len(social) + len(alone) + 1}
     for cls in ("C1", "S2"):  # the first epoch at SR 0.5, read from the CSV files directly
@@ -248,3 +251,44 @@ def test_fishers_exact_test_matches_the_hypergeometric_tables_of_known_cases():
     assert pr.fisher_p(5, 5, 0, 5) == pytest.approx(2 / 252)  # all against none: the two extreme tables
     assert pr.fisher_p(0, 5, 5, 5) == pr.fisher_p(5, 5, 0, 5)
     assert pr.fisher_p(2, 5, 2, 5) == pytest.approx(1.0) and pr.fisher_p(0, 3, 0, 3) == 1.0
+
+
+def test_proposals_per_social_cycle_are_each_runs_proposals_over_its_social_cycles_averaged_over_runs(tmp_path):
+    # 500 segments an epoch, cycles of 10: 50 cycles, a social share of 0.2 makes 10 social cycles.
+    resumed = pr.read_run(fake_run(tmp_path / "a1", 1, 0.5, True, epochs=5))
+    for k in resumed:  # resumed from a version that did not log the proposals in epochs 0 and 1
+        if k.startswith("sp_"):
+            resumed[k][:2] = math.nan
+    resumed["sp_beyond_S3"][2:], resumed["sp_frontier_S3"][2:] = [1, 2, 3], [3, 3, 3]  # 6 and 9 in 30 cycles
+    shorter = pr.read_run(fake_run(tmp_path / "a2", 2, 0.5, True, epochs=3))
+    shorter["social_share"] = np.array([0.1, 0.1, 0.2])  # 5 + 5 + 10 social cycles
+    shorter["sp_beyond_S3"], shorter["sp_frontier_S3"] = np.array([0, 2, 0.0]), np.array([1, 1, 2.0])  # 2, 4 in 20
+    older = pr.read_run(fake_run(tmp_path / "a3", 3, 0.5, True, epochs=5))
+    older = {k: v for k, v in older.items() if not k.startswith("sp_")}  # no proposals logged: left out
+    alone = [pr.read_run(fake_run(tmp_path / f"b{s}", s, 0.5, False, epochs=5)) for s in (1, 2)]
+    text = pr.tables({"A": [resumed, shorter, older], "B": alone})
+    table = markdown_table_after(text, "The social partner's proposals per social cycle")
+    assert "(A: 2 of 3 runs; min-max over them)" in text
+    assert table[0] == ["class", "A, beyond", "A, frontier"]  # B had no social cycle
+    s3 = next(row for row in table if row[0] == "S3")
+    assert s3[1:] == ["0.15 (0.1-0.2)", "0.25 (0.2-0.3)"]  # beyond (6/30 + 2/20) / 2, frontier (9/30 + 4/20) / 2
+    rates = pr.proposal_rates_by_condition({"A": [resumed, shorter, older], "B": alone})
+    assert list(rates) == ["A"] and rates["A"].shape == (2, 2, len(og.evaluation_classes(3)) + 1)
+
+
+def test_first_discovery_of_each_hard_class_reads_epoch_and_social_cycles_up_to_it_or_a_dash(tmp_path):
+    runs = [pr.read_run(fake_run(tmp_path / f"sp{s}", s, 0.5, True, epochs=e, blocks=5)) for s, e in ((1, 6), (2, 8))]
+    for r in runs:
+        r |= {f"agent_nodes_{c}": np.zeros(len(r["epoch"])) for c in og.evaluation_classes(5)}
+    first, longer = runs
+    first["social_share"] = np.array([0.2, 0, 0.1, math.nan, 0.4, 0.2])  # social cycles 10, 0, 5, ?, 20, 10
+    first["agent_nodes_S3"] = np.array([0, 0, 0, 0, 2, 3.0])  # epoch 4: 10 + 0 + 5 + 20 social cycles
+    first["agent_nodes_S4"] = np.array([math.nan, math.nan, 1, 1, 1, 1])  # logged from epoch 2 (a resumed run)
+    first["agent_nodes_P3&S2"] = np.ones(6)  # epoch 0, its 10 social cycles
+    longer["agent_nodes_S2&S2"][3:] = 4  # epoch 3: 4 x 10 social cycles
+    longer["agent_nodes_S3"][7] = 1  # after epoch 5, the shorter run's last: not in the table
+    table = markdown_table_after(pr.tables({"SP-20%": runs}), "Help and discovery per run")
+    hard = {row[0]: dict(zip(table[0][5:], row[5:], strict=True)) for row in table[1:]}
+    assert hard["SP-20% seed 1"] == {"S3": "4 (35)", "S2&S2": "—", "S2&S3": "—", "P3&S2": "0 (10)", "S4": "2 (15)",
+                                     "S5": "—"}  # fmt: skip
+    assert hard["SP-20% seed 2"] == dict.fromkeys(pr.HARD, "—") | {"S2&S2": "3 (40)"}
