@@ -47,9 +47,9 @@ class Mutation:
 
 
 G, LP, VDS, ENV, ORACLE = "gangstr_hme.py", "lp_baseline.py", "vds_baseline.py", "fetch5_env.py", "oracle_graph.py"
-P = "plumbing.py"
+P, LQ = "plumbing.py", "learner_query.py"
 TG, TH, TB, TE, TO = (f"tests/test_{x}.py" for x in ("gangstr", "hme", "baselines", "env", "oracle_graph"))
-TGPU = "tests/test_gpu.py"
+TGPU, TL = "tests/test_gpu.py", "tests/test_learner_query.py"
 
 # fmt: off
 MUTATIONS = [
@@ -312,28 +312,65 @@ MUTATIONS = [
     Mutation("internalization buffer keeps duplicates", G, "return list(dict.fromkeys([*kept, *new]))",
              "return [*kept, *new]", f"{TH} -k 'stored_once or merge_into_one_set'"),
     # --- beyond the paper: the learner asks for help (SPEC §7.1) ---------------------------------------
-    Mutation("the learner asks while its graph grows", G, 'q["stalled"] = 0 if grew else q["stalled"] + 1',
+    Mutation("the learner asks while its graph grows", LQ, 'q["stalled"] = 0 if grew else q["stalled"] + 1',
              'q["stalled"] = q["stalled"] + 1', f"{TH} -k test_the_learner_asks_for_help"),
-    Mutation("help goes on after a social cycle that added no node", G,
+    Mutation("help goes on after a social cycle that added no node", LQ,
              'if q["helped"] and grew and q["helped"] < args.help_cycles:',
              'if q["helped"] and q["helped"] < args.help_cycles:', f"{TH} -k 'asks_for_help or help_goes_on'"),
-    Mutation("help is not capped at help_cycles", G,
+    Mutation("help is not capped at help_cycles", LQ,
              'if q["helped"] and grew and q["helped"] < args.help_cycles:',
              'if q["helped"] and grew:', f"{TH} -k help_goes_on"),
-    Mutation("the signal read by every worker, not once a cycle", G,
+    Mutation("the signal read by every worker, not once a cycle", LQ,
              'if q["read_at"] != self.learner.segments:', "if True:", f"{TH} -k test_the_learner_asks_for_help"),
     Mutation("--ask-after 0 does not turn the query off", G,
-             "if args.ask_after == 0:\n            return False\n", "",
+             ("if args.ask_after or args.learner_picks:", "Query(args, learner) if args.ask_after else None"),
+             ("if True:", "Query(args, learner) if True else None"),
              f"{TH} -k 'test_the_learner_asks_for_help or coin_alone'"),
-    Mutation("a query counted by every worker", G, 'self.query["helped"] == 1 and w.index == 0',
-             'self.query["helped"] == 1', f"{TH} -k test_queries_help_cycles"),
+    Mutation("a query counted by every worker", G, 'self.query.state["helped"] == 1 and w.index == 0',
+             'self.query.state["helped"] == 1', f"{TH} -k test_queries_help_cycles"),
     Mutation("help with nothing proposed never counted", G, "proposed = w.left < n_segments",
              "proposed = w.left <= n_segments", f"{TH} -k test_queries_help_cycles"),
-    Mutation("the query's state not restored by --resume", G, 'if "query" in s:', "if False:",
-             f"{TG} -k 'stopped_run_resumes and ctrl'"),
+    Mutation("the query's state not restored by --resume", G, 'if self.query is not None and "query" in s:',
+             "if False:", f"{TG} -k 'stopped_run_resumes and ctrl'"),
+    Mutation("--ask-progress classes counts nodes", LQ,
+             'graph.n_nodes if self.args.ask_progress == "nodes" else len(graph.sr)', "graph.n_nodes",
+             f"{TL} -k sr_classes"),
+    # --- beyond the paper: the learner picks among the partner's candidates (SPEC §7.1) -----------------
+    Mutation("--learner-picks not installed", G, "if args.learner_picks:  # the learner picks", "if False:",
+             f"{TL} -k change_what_the_partner_proposes"),
+    Mutation("novelty: every pair counts, seen or not", LQ, "unseen = np.triu(self.pairs == 0)",
+             "unseen = np.triu(self.pairs >= 0)", f"{TL} -k novelty"),
+    Mutation("novelty: a fact never held alone does not count", LQ, "unseen = np.triu(self.pairs == 0)",
+             "unseen = np.triu(self.pairs == 0, 1)", f"{TL} -k counts_the_pairs"),
+    Mutation("novelty: nodes counted again at every pick", LQ, "            self.counted = graph.n_nodes\n", "",
+             f"{TL} -k counts_the_pairs"),
+    Mutation("novelty reads a class table", LQ, 'return np.einsum("ci,ij,cj->c", held, unseen, held)',
+             'return np.einsum("ci,ij,cj->c", held, unseen, held) + 9 * (self.partner.oracle.class_of(og.from_mask('
+             'np.asarray(candidates, dtype=np.int64), self.args.n_blocks)) == "C1")', f"{TL} -k renaming"),
+    Mutation("ties: always the first", LQ, "best[w.rng.integers(len(best))]", "best[0]", f"{TL} -k ties_are_drawn"),
+    Mutation("ties: drawn from numpy's global stream", LQ, "best[w.rng.integers(len(best))]",
+             "best[np.random.randint(len(best))]", f"{TL} -k same_state_gives_the_same_pick"),
+    Mutation("zpd: within reach of the critic's value of holding, undiscounted", LQ,
+             "reach = value >= self.args.gamma**self.args.segment_len * here", "reach = value >= here",
+             f"{TL} -k zpd_picks_by_novelty"),
+    Mutation("zpd: none within reach, novelty anyway", LQ, "if reach.any() else value", "if reach.any() else score",
+             f"{TL} -k zpd_picks_by_novelty"),
+    Mutation("zpd: the frontier least sure to arrive at", LQ, "return -dist[[graph.node_of",
+             "return dist[[graph.node_of", f"{TL} -k surest"),
+    Mutation("zpd: one round of Bellman-Ford", LQ, "if np.array_equal(new, dist):", "if True:", f"{TL} -k surest"),
+    Mutation("zpd: the larger twin", LQ, "q = torch.min(*agent.critic.q(", "q = torch.max(*agent.critic.q(",
+             f"{TL} -k smaller_twin"),
+    Mutation("zpd: the stochastic actor's mean, shifted", LQ, "torch.tanh(mean), msg)", "torch.tanh(mean + 0.5), msg)",
+             f"{TL} -k smaller_twin"),
     Mutation("help vs discovery: social cycles from cumulative segments", "plot_results.py",
              'np.diff(run["segments"], prepend=0.0) / run.get("n_segments", 10)',
              'run["segments"] / run.get("n_segments", 10)', "tests/test_plot_results.py -k help_vs_discovery"),
+    Mutation("proposals per social cycle: cycles of epochs without logged proposals counted", "plot_results.py",
+             "total = cycles[logged].sum()", "total = np.nansum(cycles)",
+             "tests/test_plot_results.py -k proposals_per_social_cycle"),
+    Mutation("first discovery: social cycles up to the epoch before it", "plot_results.py",
+             "social_cycles(r)[: found[0] + 1]", "social_cycles(r)[: found[0]]",
+             "tests/test_plot_results.py -k first_discovery"),
     # --- a person as the partner (--partner person) -----------------------------------------------------
     Mutation("the person's pick does not reach the agent", "person_partner.py",
              'picked, by = answered[1], "person"', 'picked, by = self.partner.choose(w, candidates), "person"',

@@ -70,13 +70,16 @@ def test_the_same_state_gives_the_same_pick(signal):
 
 def test_novelty_counts_the_pairs_of_facts_the_agent_has_seen_together_as_the_graph_grows():
     sp = gh.SocialPartner(N)
-    graph = random_agent_graph(sp, 1, p_node=0.2, p_edge=0.0)
+    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+    graph.add_config(int(og.to_mask(og.make_config(N))))  # all apart: no fact held yet
     picks, _ = picks_on(graph, "novelty")
     candidates = sp.oracle.masks
-    for grow in range(3):  # the counts follow the graph as it grows between picks
+    for grow in range(4):  # the counts follow the graph as it grows between picks
         got = picks.novelty(graph, candidates)
         assert got.tolist() == [brute_novelty(graph, int(c)) for c in candidates]
-        for m in sp.oracle.masks[grow * 7 : grow * 7 + 7]:
+        held = (og.from_mask(np.asarray(graph.masks), N) > 0).astype(np.int64)
+        assert np.array_equal(picks.pairs, held.T @ held)  # each node counted once
+        for m in sp.oracle.masks[grow * 5 : grow * 5 + 5]:
             graph.add_config(int(m))
 
 
@@ -99,17 +102,22 @@ def test_novelty_changes_its_pick_with_what_the_agent_has_seen():
 
 def test_zpd_picks_by_novelty_among_the_goals_the_critic_expects_to_reach_within_a_segment(monkeypatch):
     sp = gh.SocialPartner(N)
-    graph = random_agent_graph(sp, 2, p_node=0.3, p_edge=0.2)
+    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+    here = int(og.to_mask(og.make_config(N, close=[(0, 1)])))
+    graph.add_config(here)  # a beginner: stacks hold more new pairs than moves of a block close to another
     picks, run = picks_on(graph, "zpd")
-    w, here = run.workers[0], graph.masks[0]
+    w = run.workers[0]
     offered = sp.beyond_candidates(graph, here)
-    assert len(offered) >= 3
     novelty = picks.novelty(graph, offered)
-    order = np.argsort(-novelty, kind="stable")
-    threshold = run.args.gamma**run.args.segment_len * 10.0  # the value of the config it stands on: 10
-    value = np.full(len(offered), threshold - 1.0)  # out of reach ...
-    value[order[1:]] = threshold  # ... but for all but the most novel: the next most novel is picked
-    monkeypatch.setattr(picks, "values", lambda w, c: (value, 10.0))
+    assert len(set(novelty.tolist())) >= 3
+    order = np.argsort(-novelty, kind="stable")  # most novel first
+    stay = 10.0  # the critic's value of holding the config it stands on
+    threshold = run.args.gamma**run.args.segment_len * stay
+    rank = np.empty(len(offered))
+    rank[order] = np.arange(len(offered))
+    value = threshold + 0.1 * rank  # all within reach (below `stay`), the least novel of highest value
+    value[order[0]] = threshold - 1.0  # but the most novel out of reach: the next most novel is picked
+    monkeypatch.setattr(picks, "values", lambda w, c: (value, stay))
     assert picks.beyond_goal(graph, here, w) in offered[order[1:]][novelty[order[1:]] == novelty[order[1]]]
     value[order[0]] = threshold  # the critic now reaches the most novel one too
     assert picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]
@@ -210,7 +218,7 @@ def test_no_signal_reads_a_class_table_renaming_the_evaluation_classes_changes_n
     def goals() -> list[int]:
         torch.manual_seed(0)  # the same critic
         run, said = hme_run(learner_picks=signal, n_segments=6, segment_len=6, stable_steps=2, seed=4), []
-        for _ in range(4):
+        for _ in range(6):
             run.learner.learn_from(gh.run_cycle(run))
             said += [og.to_mask(s.g) for s in run.workers[0].segments]
         return said, run
