@@ -82,14 +82,16 @@ class LearnerPicks:
         has been held, so all tie and the draw below decides, as the uniform partner does.
       - 'zpd' (competence, the zone of proximal development): the frontier goal is the stepping stone the
         agent is surest to arrive at, by its graph: the highest product of SR estimates along a path from
-        where it stands (SPEC §6's safest path; 1 for where it stands). A beyond goal is picked by novelty
-        among the candidates the critic expects to reach within one segment: Q(s, mu(s, g), g) >= gamma^T
-        Q(s, mu(s, c), c), g the candidate, c the config the agent stands on, mu the deterministic actor.
-        The critic's value of holding c, discounted by the T steps of a segment, is its value of a goal
-        reached at the segment's end (the reward is 1 at every step on the goal, SPEC §5). With none within
-        reach, the candidate of highest value.
-    The highest score wins; ties are drawn from the worker's stream, one draw as the uniform partner makes,
-    so a run stays exact under any split of the workers into processes and across --resume (SPEC §11)."""
+        where it stands (SPEC §6's safest path; 1 for where it stands). A beyond goal is, among the
+        candidates the critic expects to reach within one segment, the most novel (as above), and among
+        those the hardest: the lowest value. Within reach: Q(s, mu(s, g), g) >= gamma^T Q(s, mu(s, c), c),
+        g the candidate, c the config the agent stands on, mu the deterministic actor; the critic's value
+        of holding c, discounted by the T steps of a segment, is its value of a goal reached at the
+        segment's end (the reward is 1 at every step on the goal, SPEC §5). With none within reach, the
+        candidate of highest value.
+    The highest score wins (then the next score, among those tied); ties are drawn from the worker's
+    stream, one draw as the uniform partner makes, so a run stays exact under any split of the workers into
+    processes and across --resume (SPEC §11)."""
 
     def __init__(self, partner, args, learner, split_obs):
         self.partner, self.args, self.learner, self.split_obs = partner, args, learner, split_obs
@@ -110,19 +112,23 @@ class LearnerPicks:
 
     def beyond_goal(self, graph, config: int, w) -> int | None:
         candidates = self.partner.beyond_candidates(graph, config)
-        score = self.novelty(graph, candidates)
         if self.args.learner_picks == "zpd" and len(candidates):
             value, here = self.values(w, candidates)
             reach = value >= self.args.gamma**self.args.segment_len * here
-            score = np.where(reach, score, -np.inf) if reach.any() else value
-        return self.pick(w, candidates, score)
+            if not reach.any():
+                return self.pick(w, candidates, value)
+            return self.pick(w, candidates, np.where(reach, 0.0, -np.inf), self.novelty(graph, candidates), -value)
+        return self.pick(w, candidates, self.novelty(graph, candidates))
 
-    def pick(self, w, candidates: np.ndarray, score: np.ndarray) -> int | None:
-        """The candidate of highest score (to 1e-9: sums of logs in another order tie); among ties, one
-        draw from the worker's stream. None: no candidate."""
+    def pick(self, w, candidates: np.ndarray, *scores: np.ndarray) -> int | None:
+        """The candidate of highest score, then of highest next score among those tied, and so on (ties to
+        1e-9: sums of logs in another order tie); among the last ties, one draw from the worker's stream.
+        None: no candidate."""
         if not len(candidates):
             return None
-        best = np.flatnonzero(score >= score.max() - 1e-9)
+        best = np.arange(len(candidates))
+        for score in scores:
+            best = best[score[best] >= score[best].max() - 1e-9]
         return int(candidates[best[w.rng.integers(len(best))]])
 
     def novelty(self, graph, candidates: np.ndarray) -> np.ndarray:

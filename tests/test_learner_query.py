@@ -121,6 +121,11 @@ def test_zpd_picks_by_novelty_among_the_goals_the_critic_expects_to_reach_within
     assert picks.beyond_goal(graph, here, w) in offered[order[1:]][novelty[order[1:]] == novelty[order[1]]]
     value[order[0]] = threshold  # the critic now reaches the most novel one too
     assert picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]
+    tied = np.flatnonzero(novelty == novelty[order[1]])  # among equally novel ones within reach: the hardest
+    assert len(tied) >= 2
+    value[order[0]] = threshold - 1.0
+    value[tied] = threshold + 1.0 + np.arange(len(tied))
+    assert picks.beyond_goal(graph, here, w) == offered[tied[0]]
     value[:] = threshold - 5.0  # nothing within reach: the candidate of highest value
     value[order[-1]] = threshold - 2.0
     assert picks.beyond_goal(graph, here, w) == offered[order[-1]]
