@@ -74,21 +74,17 @@ class Query:
 # ------------------------------------------------------------------------------------------------
 class LearnerPicks:
     """The social partner of gangstr_hme.py with the learner's choice among its candidates (`partner`, a
-    SocialPartner, offers them; everything else, stepping stones and classes, is the partner's). By
-    --learner-picks:
-      - 'novelty' (count-based): a beyond goal is the candidate holding the most pairs of facts that no
-        node of the agent holds together. A config's facts are its true predicates (SPEC §2); a pair is
-        two of them, or one with itself (a fact never held). A frontier goal is a node: every pair it holds
-        has been held, so all tie and the draw below decides, as the uniform partner does.
+    SocialPartner, offers them; everything else, stepping stones and classes, is the partner's). A config's
+    facts are its true predicates (SPEC §2); a pair is two of them, or one with itself. By --learner-picks:
+      - 'novelty' (count-based): a beyond goal is a candidate that is not yet a node of the agent's graph
+        (a config it has never been in), if there is one, and among those the one holding the most pairs
+        that no node holds together. A frontier goal is a node, whose pairs have all been held: all tie,
+        and the draw below decides, as the uniform partner does.
       - 'zpd' (competence, the zone of proximal development): the frontier goal is the stepping stone the
         agent is surest to arrive at, by its graph: the highest product of SR estimates along a path from
-        where it stands (SPEC §6's safest path; 1 for where it stands). A beyond goal is, among the
-        candidates the critic expects to reach within one segment, the most novel (as above), and among
-        those the hardest: the lowest value. Within reach: Q(s, mu(s, g), g) >= gamma^T Q(s, mu(s, c), c),
-        g the candidate, c the config the agent stands on, mu the deterministic actor; the critic's value
-        of holding c, discounted by the T steps of a segment, is its value of a goal reached at the
-        segment's end (the reward is 1 at every step on the goal, SPEC §5). With none within reach, the
-        candidate of highest value.
+        where it stands (SPEC §6's safest path; 1 for where it stands). A beyond goal is picked by novelty,
+        then, among the equally novel, the hardest by the critic: the lowest value Q(s, mu(s, g), g) of the
+        candidate g from where the agent stands (mu: the deterministic actor; Q: the smaller twin).
     The highest score wins (then the next score, among those tied); ties are drawn from the worker's
     stream, one draw as the uniform partner makes, so a run stays exact under any split of the workers into
     processes and across --resume (SPEC §11)."""
@@ -112,13 +108,11 @@ class LearnerPicks:
 
     def beyond_goal(self, graph, config: int, w) -> int | None:
         candidates = self.partner.beyond_candidates(graph, config)
+        new = ~np.isin(candidates, np.asarray(graph.masks, dtype=np.int64))  # configs it has never been in
+        scores = [new.astype(np.float64), self.novelty(graph, candidates)]
         if self.args.learner_picks == "zpd" and len(candidates):
-            value, here = self.values(w, candidates)
-            reach = value >= self.args.gamma**self.args.segment_len * here
-            if not reach.any():
-                return self.pick(w, candidates, value)
-            return self.pick(w, candidates, np.where(reach, 0.0, -np.inf), self.novelty(graph, candidates), -value)
-        return self.pick(w, candidates, self.novelty(graph, candidates))
+            scores.append(-self.values(w, candidates))  # the hardest, by the critic
+        return self.pick(w, candidates, *scores)
 
     def pick(self, w, candidates: np.ndarray, *scores: np.ndarray) -> int | None:
         """The candidate of highest score, then of highest next score among those tied, and so on (ties to
@@ -158,21 +152,18 @@ class LearnerPicks:
         return -dist[[graph.node_of[int(c)] for c in candidates]]
 
     @torch.inference_mode()
-    def values(self, w, candidates: np.ndarray) -> tuple[np.ndarray, float]:
-        """The critic's value (the smaller twin) of each candidate goal, and of the config the agent stands
-        on, from where it stands, with the deterministic actor's action."""
+    def values(self, w, candidates: np.ndarray) -> np.ndarray:
+        """The critic's value (the smaller twin) of each candidate goal from where the agent stands, with the
+        deterministic actor's action."""
         agent = self.learner.agent
         now = w.env.set_goal(w.env.goal)
-        goals = og.from_mask(np.append(np.asarray(candidates, dtype=np.int64), og.to_mask(now["achieved_goal"])),
-                             self.args.n_blocks).astype(np.float32)  # fmt: skip
-        k = len(goals)
-        obs = torch.from_numpy(agent.normalizer(np.repeat(now["observation"][None], k, 0).astype(np.float32)))
+        goals = og.from_mask(np.asarray(candidates, dtype=np.int64), self.args.n_blocks).astype(np.float32)
+        obs = torch.from_numpy(agent.normalizer(np.repeat(now["observation"][None], len(goals), 0).astype(np.float32)))
         body, blocks = self.split_obs(obs.to(agent.device), agent.gi.n)
         gap = torch.from_numpy(goals - now["achieved_goal"].astype(np.float32)).to(agent.device)
         msg = agent.critic.messages(agent.gi, blocks, gap)
         mean, _ = agent.actor(body, blocks, msg)
-        q = torch.min(*agent.critic.q(body, blocks, torch.tanh(mean), msg)).double().cpu().numpy()
-        return q[:-1], float(q[-1])
+        return torch.min(*agent.critic.q(body, blocks, torch.tanh(mean), msg)).double().cpu().numpy()
 
 
 def check_args(a) -> str | None:

@@ -100,37 +100,29 @@ def test_novelty_changes_its_pick_with_what_the_agent_has_seen():
     assert og.from_mask(picked["S2"], N)[3:].max() < 0  # blocks close together, none on another
 
 
-def test_zpd_picks_by_novelty_among_the_goals_the_critic_expects_to_reach_within_a_segment(monkeypatch):
+def test_beyond_goals_are_new_configs_first_then_the_most_novel_and_for_zpd_the_hardest(monkeypatch):
     sp = gh.SocialPartner(N)
     graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))
     here = int(og.to_mask(og.make_config(N, close=[(0, 1)])))
     graph.add_config(here)  # a beginner: stacks hold more new pairs than moves of a block close to another
-    picks, run = picks_on(graph, "zpd")
-    w = run.workers[0]
     offered = sp.beyond_candidates(graph, here)
-    novelty = picks.novelty(graph, offered)
+    picks = {signal: picks_on(graph, signal) for signal in SIGNALS}
+    novelty = picks["novelty"][0].novelty(graph, offered)
     assert len(set(novelty.tolist())) >= 3
-    order = np.argsort(-novelty, kind="stable")  # most novel first
-    stay = 10.0  # the critic's value of holding the config it stands on
-    threshold = run.args.gamma**run.args.segment_len * stay
-    rank = np.empty(len(offered))
-    rank[order] = np.arange(len(offered))
-    value = threshold + 0.1 * rank  # all within reach (below `stay`), the least novel of highest value
-    value[order[0]] = threshold - 1.0  # but the most novel out of reach: the next most novel is picked
-    monkeypatch.setattr(picks, "values", lambda w, c: (value, stay))
-    assert picks.beyond_goal(graph, here, w) in offered[order[1:]][novelty[order[1:]] == novelty[order[1]]]
-    value[order[0]] = threshold  # the critic now reaches the most novel one too
-    assert picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]
-    tied = np.flatnonzero(novelty == novelty[order[1]])  # among equally novel ones within reach: the hardest
-    assert len(tied) >= 2
-    value[order[0]] = threshold - 1.0
-    value[tied] = threshold + 1.0 + np.arange(len(tied))
-    assert picks.beyond_goal(graph, here, w) == offered[tied[0]]
-    value[:] = threshold - 5.0  # nothing within reach: the candidate of highest value
-    value[order[-1]] = threshold - 2.0
-    assert picks.beyond_goal(graph, here, w) == offered[order[-1]]
-    novelty_picks, _ = picks_on(graph, "novelty")
-    assert novelty_picks.beyond_goal(graph, here, w) in offered[novelty == novelty.max()]  # novelty: no critic
+    w = picks["zpd"][1].workers[0]
+    value = np.arange(len(offered), dtype=np.float64)  # the first candidate hardest, by the critic
+    monkeypatch.setattr(picks["zpd"][0], "values", lambda w, c: value)
+    most = np.flatnonzero(novelty == novelty.max())
+    assert picks["novelty"][0].beyond_goal(graph, here, w) in offered[most]
+    assert picks["zpd"][0].beyond_goal(graph, here, w) == offered[most[0]]  # the hardest of the most novel
+    value[:] = value[::-1].copy()  # now the last is hardest
+    assert picks["zpd"][0].beyond_goal(graph, here, w) == offered[most[-1]]
+    for m in offered[most]:  # the agent has now been in the most novel ones: the others are new configs
+        graph.add_config(int(m))
+    still_new = ~np.isin(offered, np.asarray(graph.masks))
+    assert still_new.any()
+    for signal in SIGNALS:
+        assert still_new[list(offered).index(picks[signal][0].beyond_goal(graph, here, w))]
 
 
 def test_zpd_values_are_the_smaller_twin_of_the_deterministic_action_from_where_the_agent_stands():
@@ -142,9 +134,9 @@ def test_zpd_values_are_the_smaller_twin_of_the_deterministic_action_from_where_
         torch.nn.init.normal_(p, std=0.3)
     here = gh.current_config(w.env)
     offered = sp.beyond_candidates(gh.SemanticGraph(N, gh.Args(n_blocks=N)), here)
-    value, stay = picks.values(w, offered)
+    value = picks.values(w, offered)
     now = w.env.set_goal(w.env.goal)
-    goals = og.from_mask(np.append(offered, here), N).astype(np.float32)
+    goals = og.from_mask(offered, N).astype(np.float32)
     k = len(goals)
     obs, ag = np.repeat(now["observation"][None], k, 0), np.repeat(now["achieved_goal"][None], k, 0)
     action = agent.act(obs, ag.astype(np.float32), goals)  # the deterministic policy's action
@@ -154,7 +146,7 @@ def test_zpd_values_are_the_smaller_twin_of_the_deterministic_action_from_where_
         msg = agent.critic.messages(agent.gi, blocks, torch.from_numpy(goals - ag.astype(np.float32)))
         q1, q2 = agent.critic.q(body, blocks, torch.from_numpy(action), msg)
     want = torch.minimum(q1, q2).numpy()
-    np.testing.assert_allclose(np.append(value, stay), want, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(value, want, rtol=1e-5, atol=1e-5)
     assert len(set(np.round(value, 4))) > 1  # the candidates' values differ
 
 
@@ -163,7 +155,7 @@ def test_ties_are_drawn_uniformly_from_the_workers_stream(signal):
     graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))  # no node: every candidate equally novel
     picks, run = picks_on(graph, signal)
     if signal == "zpd":
-        picks.values = lambda w, c: (np.ones(len(c)), 1.0)  # all within reach
+        picks.values = lambda w, c: np.ones(len(c))  # all equally hard
     offered = np.arange(5, dtype=np.int64) * 3 + 1
     counts = np.zeros(5)
     w = stream(0)
