@@ -81,10 +81,12 @@ class Args:
     """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
     social cycle that added no progress (the partner had nothing new to show)"""
     ask_progress: str = "nodes"
-    """the query's progress: 'nodes' of the semantic graph or its SR 'classes' (the kinds of transition made)"""
+    """the query's progress: 'nodes' of the semantic graph, or its SR 'classes' (kinds of transition), which
+    grow for longer and so ask later (first query at epoch 6 against 1 in a pilot: towers came later too)"""
     learner_picks: str = ""
-    """beyond the paper: the learner picks among the partner's candidates by 'novelty' or 'zpd' (the critic's
-    reach, then novelty); '' = the partner's uniform draw (the paper's)"""
+    """beyond the paper: the learner picks among the partner's candidates by 'novelty' (new configs, then
+    unseen pairs of facts) or 'zpd' (its surest frontier, then novelty, then the critic's hardest); '' =
+    the partner's uniform draw (the paper's)"""
     partner: str = "oracle"
     """who chooses the partner's goals: 'oracle' (the paper's simulated partner, uniform draws) or 'person'
     (you, at a page the run serves: README.md, section "You as the social partner")"""
