@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 # Under pytest-xdist (the test command's -n 2) each worker process has a core: torch's threads, and those of
-# the runs the tests start, would only contend with the other worker's (measured: a SAC test 1.4-3x slower).
+# the runs the tests start, would only contend with the other worker's (a SAC test ran 1.4-3x slower so).
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
