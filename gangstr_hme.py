@@ -28,21 +28,15 @@ Read top to bottom: Args, the networks (SPEC §5), normalizer and HER replay, SA
 and its path estimator (SPEC §6), rollouts, goal samplers (Sampler: the hooks) and HME's (SPEC §7),
 learning, evaluation (SPEC §9), the main loop, main(). What is not the algorithm (command line, processes,
 checkpoints and the paper's trained agent, outputs, interruptions) is written once for the three training
-scripts in plumbing.py, which a reader of the paper may skip.
+scripts in plumbing.py, which a reader of the paper may skip, and what only makes it faster in speed.py.
 """
 
 from __future__ import annotations
 
 import collections
 import collections.abc
-import concurrent.futures
-import contextlib
-import copy
-import ctypes
-import functools
 import heapq
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +50,7 @@ import torch.nn.functional as F
 import fetch5_env
 import oracle_graph as og
 import plumbing  # what is not the algorithm: command line, processes, checkpoints, outputs, interruptions
+import speed  # what only makes it faster, the same math (the update's fast path: off with --plain)
 from plumbing import all_gather_rows, all_sum, broadcast_params, gather_workers, rank, sum_grads, summed, world
 
 
@@ -198,7 +193,7 @@ class MLP(nn.Module):
     updates. One module with a functional forward rather than an nn.Sequential of four: acting runs these
     nets on one observation, where each extra module call costs about as much as the small matmul it wraps.
     `large`: a net run on every edge or node (message and node nets), whose products --precision bf16
-    computes in bf16. A fork may change it: plumbing's CPU kernels then step aside (see fused)."""
+    computes in bf16 (speed.py). A fork may change it: speed.py's fast nets then step aside (see SAC)."""
 
     def __init__(self, n_in: int, n_hidden: int, n_out: int, out_relu: bool = True, large: bool = False):
         super().__init__()
@@ -206,11 +201,7 @@ class MLP(nn.Module):
         self.large = large
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if fused(x) and not self.out_relu:  # a head in an update on the CPU: plumbing's kernel (see fused)
-            return plumbing.Head.apply(x, *self.params())
         w1, b1, w2, b2 = self.params()
-        if self.large and update_products.dtype not in (None, torch.float32):  # --precision bf16, in an update
-            x, w1, b1, w2, b2 = (t.to(update_products.dtype) for t in (x, w1, b1, w2, b2))
         x = F.linear(F.relu(F.linear(x, w1, b1)), w2, b2)
         return F.relu(x) if self.out_relu else x
 
@@ -218,25 +209,9 @@ class MLP(nn.Module):
         return self.hidden.weight, self.hidden.bias, self.out.weight, self.out.bias
 
 
-@contextlib.contextmanager
-def update_products(dtype: torch.dtype, kernels: bool = True):
-    """Within it, the networks compute as in a SAC update: the large nets' products in `dtype` (--precision),
-    on the CPU by plumbing's kernels if `kernels` (see fused). Outside it (acting), torch's F.linear in fp32."""
-    update_products.dtype, update_products.kernels = dtype, kernels
-    try:
-        yield
-    finally:
-        update_products.dtype = None
-
-
-update_products.dtype, update_products.kernels = None, False
-
-
 def node_sum(net: MLP, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
     """sum_i net([glob, local_i]) (B, out), in fp32 whatever the net's precision, for the graph-wide features
     glob (B, .) and each node's own local (B, n, .): the node net's readout (SPEC §5)."""
-    if fused(local):
-        return plumbing.NodeNet.apply(glob, local, *net.params(), update_products.dtype)
     x = torch.cat([glob[:, None].expand(-1, local.shape[1], -1), local], dim=-1)  # node i: [glob, local_i]
     return net(x).sum(1, dtype=torch.float32)
 
@@ -244,34 +219,8 @@ def node_sum(net: MLP, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
 def edge_max(net: MLP, edges: torch.Tensor, n: int) -> torch.Tensor:
     """(B, n, out): for node i, the max over its n - 1 outgoing edges (i, j) of net(edge input); edges
     (B, E, .) ordered by i (GraphIndex). The message passing of SPEC §5."""
-    if fused(edges):
-        return plumbing.fused_edge_max(edges, *net.params(), n, update_products.dtype)
     m = net(edges)
     return m.reshape(len(m), n, n - 1, m.shape[-1]).amax(dim=2)
-
-
-def fused(x: torch.Tensor) -> bool:
-    """Inside an update on the CPU, not compiled: node_sum, edge_max and the heads by plumbing's NodeNet,
-    fused_edge_max and Head, the same math with its backward written out (a speed trick, docs/speed.md: the
-    update 1.06-1.11x that of commit 25d2c6b on an AVX2 CPU, paired; tests/test_update.py holds them to the
-    plain nets). They implement MLP as written here: SAC checks that they still compute these nets' losses
-    (plumbing.kernels_compute) and runs the plain nets if not (a fork that changed MLP), or with --plain.
-    Elsewhere (a GPU, --compile), the plain nets and torch's autograd."""
-    in_update = update_products.dtype is not None and update_products.kernels
-    return in_update and x.is_cpu and not torch.compiler.is_compiling()
-
-
-def weight_view(module: nn.Module) -> nn.Module:
-    """A copy of `module` whose parameters are views of the original's that do not require grad: it
-    follows every optimizer step and checkpoint load, and spares acting the dispatch cost that torch
-    pays for each op on a tensor that requires grad (even under inference_mode)."""
-    view = copy.copy(module)
-    view._modules = {name: weight_view(child) for name, child in module._modules.items()}
-    view.__dict__.update(view._modules)  # found without nn.Module.__getattr__, which is slow
-    view._parameters = {}
-    for name, p in module._parameters.items():
-        setattr(view, name, None if p is None else p.detach())  # plain tensors: no Parameter subclass either
-    return view
 
 
 def init_weights(module: nn.Module):
@@ -389,12 +338,6 @@ class Normalizer:
         self.mean = self.sum / self.count
         self.std = np.sqrt(np.maximum(self.eps**2, self.sumsq / self.count - self.mean**2))
 
-    def add_prior(self, mean: np.ndarray, std: np.ndarray, count: int):
-        """Statistics known by their mean and std alone (the paper's file), counted as `count` observations
-        that had this mean and std: later data then weighs in against them as against `count` of ours."""
-        mean, std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
-        self.add(count * mean, count * (std**2 + mean**2), count)
-
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x = np.clip(x, -self.clip, self.clip)
         return np.clip((x - self.mean) / self.std, -self.clip, self.clip).astype(np.float32)
@@ -465,22 +408,15 @@ class SAC:
         self.critic_target = Critic(args.n_blocks).to(device)
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        self.acting_actor, self.acting_critic = weight_view(self.actor), weight_view(self.critic)
-        # fused: Adam's step as one pass per tensor; on CPU torch's default is a dozen small ops per tensor (4x slower)
-        fused_adam = None if args.plain else True  # --plain: torch's default
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor, fused=fused_adam)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic, fused=fused_adam)
+        self.acting_actor, self.acting_critic = speed.weight_view(self.actor), speed.weight_view(self.critic)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
         self.compute_losses = torch.compile(self.losses) if args.compile else self.losses
-        self.products = dict(fp32=torch.float32, bf16=torch.bfloat16)[args.precision]  # the large products' dtype
-        self.kernels = self.device.type == "cpu" and not args.plain  # plumbing's CPU kernels (see fused)
-        if self.kernels:
-            nets = [*self.actor.parameters(), *self.critic.parameters()]
-            self.kernels = plumbing.kernels_compute(self.losses, update_products, args.n_blocks, nets)
-        if self.device.type == "cpu" and not args.plain:
-            keep_freed_memory()
+        if not args.plain:  # the fast path, the same losses (CPU kernels, --precision bf16, fused Adam): speed.py
+            speed.fast_update(self)
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, ag: np.ndarray, g: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
@@ -521,8 +457,7 @@ class SAC:
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
-        with update_products(self.products, self.kernels):  # --precision and the kernels: the switch (update_products)
-            critic_loss, actor_loss, target, stats = self.compute_losses(batch)
+        critic_loss, actor_loss, target, stats = self.compute_losses(batch)
         self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
         self.actor_opt.zero_grad()
         self.critic_opt.zero_grad()
@@ -544,19 +479,9 @@ class SAC:
             tp.mul_(self.args.polyak).add_(p, alpha=1 - self.args.polyak)
 
     def to_tensors(self, b: dict) -> dict:
-        """The batch on the device, obs and obs_next normalized (the raw ones stay here): plumbing.to_device."""
+        """The batch on the device, obs and obs_next normalized (the raw ones stay here): speed.to_device."""
         b = b | dict(obs=self.normalizer(b["obs"]), obs_next=self.normalizer(b["obs_next"]))
-        return plumbing.to_device(b, self.device)
-
-
-def keep_freed_memory():
-    """Keep the update's freed tensors in this process's heap for the next update (a speed trick,
-    docs/speed.md). By default glibc returns a freed block of a few MB to the system and faults its pages back in,
-    zeroed, on the next allocation: about 1,500 page faults and a tenth of a CPU update's time."""
-    libc = ctypes.CDLL(None) if os.name == "posix" else None
-    if hasattr(libc, "mallopt"):  # glibc: blocks up to 32 MB from the heap, which keeps up to 1 GB free
-        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, 1 << 30)  # M_TRIM_THRESHOLD
+        return speed.to_device(b, self.device)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -924,10 +849,7 @@ def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator], name: s
         except StopIteration:
             requests.pop(w, None)
 
-    threads = torch.get_num_threads()
-    if physics_threads(agent.args.num_envs) > 1:  # torch's idle threads would spin on the cores the envs
-        torch.set_num_threads(1)  # step on; acting batches are small (measured: physics 1.7x faster)
-    try:
+    with speed.physics_first(agent.args.num_envs):  # envs stepped in threads, torch's waiting (speed.py)
         for w in programs:
             advance(w, None)
         while requests:
@@ -939,13 +861,11 @@ def drive(agent: SAC, programs: dict[Worker, collections.abc.Generator], name: s
                 if w.left < 0:  # a forked cycle that ignores its budget: stop it now, not after it (never) ends
                     plumbing.budget_error(name, f"asked for more than worker {w.index}'s")
                 advance(w, segment)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> list[Segment]:
     """One segment per worker, in lockstep: at each of the T steps, one forward pass acts for all of
-    them, then their envs step in parallel threads (MuJoCo releases the GIL while it simulates).
+    them, then their envs step in parallel threads (speed.step_envs: MuJoCo releases the GIL while it simulates).
     Exploration noise comes from each worker's own random stream."""
     a, K, env = agent.args, len(workers), workers[0].env
     T = a.segment_len
@@ -962,7 +882,7 @@ def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> 
     filming = [(w.env, r.frames) for w, r in zip(workers, requests, strict=True) if r.frames is not None]
     for t in range(T):
         actions[:, t] = agent.act(o[:, t], ag[:, t], goals, noise[:, t])
-        step_envs([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1], physics_threads(a.num_envs))
+        speed.step_envs([w.env for w in workers], actions[:, t], o[:, t + 1], ag[:, t + 1], a.num_envs)
         for film_env, frames in filming:  # in this thread: a GL context belongs to the thread that made it
             frames.append(film_env.render())
     success = fetch5_env.goal_reached(ag[:, -1], goals)
@@ -970,58 +890,40 @@ def run_segments(agent: SAC, workers: list[Worker], requests: list[Request]) -> 
     return [Segment(o[k], ag[k], goals[k], actions[k], bool(success[k]), bool(stable[k])) for k in range(K)]
 
 
-def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray, threads: int = 1):
-    """Every env one step, in up to `threads` threads; observations written to obs_out and ag_out (K, .)."""
-
-    def step_some(ks):
-        for k in ks:
-            obs = envs[k].step(actions[k])[0]
-            obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
-
-    n = min(len(envs), threads)
-    if n == 1:
-        step_some(range(len(envs)))
-    else:
-        list(physics_pool(threads).map(step_some, [range(i, len(envs), n) for i in range(n)]))
-
-
-@functools.cache
-def physics_threads(n_envs: int) -> int:
-    """Threads that step n_envs envs: one per env, at most this process's share of the node's cores."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, min(n_envs, cores // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))))
-
-
-@functools.cache
-def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
-    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
-
-
 # ------------------------------------------------------------------------------------------------
 # Goal samplers: the hooks the rest of the file calls, and the autotelic cycle they share (SPEC §6)
 # ------------------------------------------------------------------------------------------------
 class Sampler:
-    """A goal sampler decides what every cycle does; the rest of the file uses only these hooks:
-      GoalSampler(args, learner, workers)   built once per run (Run), after the Learner
-      cycle(w)                        worker w's cycle program: yields Requests, and spends exactly w.left
-                                      (every worker runs n_segments segments a cycle: run_cycle checks it)
-      after_cycle()                   after every worker's cycle: merge what workers share (SPEC §11)
-      after_update(batch, target)     after each SAC update, its batch and TD targets: a dict of 0-d tensors to log
-      epoch_stats()                   its progress.csv columns for this epoch, the same keys every epoch
-      state_dict(), load_state_dict(s)    its checkpoint entries (top-level keys of the checkpoint, which
-                                      load_state_dict receives whole: names no other entry has)
-      open(folder, stopping), close()  a training run's folder, for files of its own, and whether Ctrl-C or
-                                      SIGTERM asked the run to stop (a sampler that waits stops waiting);
-                                      then the run's end
-      stats, goals                    this epoch's counts (plain numbers, cleared each epoch); goals so far
-    and check_sampler_args(args), a function: the first bad value of its options, described, or None.
+    """A goal sampler decides what every cycle does. The rest of the file and plumbing.py reach it through these
+    hooks alone, its contract with the run (this base gives each a default; a sampler overrides what it changes):
+      GoalSampler(args, learner, workers): built once per run (Run), after the Learner.
+      cycle(w): worker w's cycle program; yields Requests and spends exactly w.left (every worker runs n_segments
+        segments a cycle: run_cycle checks it). Each w.env.reset() starts a goal: add 1 to goals.
+      goal_outcome(w, goal, reached): an autotelic goal's outcome (an attempt the budget cut off has none).
+      after_cycle(): after every worker's cycle: merge what workers share, in worker order (SPEC §11).
+      after_update(batch, target): after each SAC update; returns a dict of 0-d tensors to log (a cycle's mean).
+        batch (SAC.to_tensors): the update's tensors on its device, B = batch_size x num_envs rows (this
+        process's workers, in order): obs, obs_next (B, 10 + 15n), normalized; ag, ag_next and g
+        (B, og.config_dim(n)), +-1, g relabelled by HER; action (B, 4); reward (B,), 1 where ag_next reaches g
+        (fetch5_env.goal_reached), else 0; noise_next, noise_pi (B, 4), the policy samples' normal draws.
+        target (B,): the critic's TD targets, without grad.
+      epoch_stats(): its progress.csv columns this epoch, the same keys every epoch. stats are this process's:
+        a count goes through plumbing.summed, which sums it over processes (right under torchrun).
+      state_dict(), load_state_dict(s): its checkpoint entries, top-level keys of the checkpoint, which
+        load_state_dict gets whole; never one of plumbing.save_state's own: script, env_version, versions,
+        args, counters, epoch_so_far, rows, actor, critic, critic_target, actor_opt, critic_opt, normalizer,
+        graph, encountered, rng, env_rng, buffer (nor format). Values that torch.load(weights_only=True)
+        accepts: tensors, Python numbers, str, bool, None, and lists, tuples and dicts of them (no numpy).
+      open(folder, stopping), close(): a training run's folder, for files of its own, and whether Ctrl-C or
+        SIGTERM asked the run to stop (a sampler that waits stops waiting); then the run's end.
+      stats: this epoch's counts (a Counter of numbers; checkpointed, cleared each epoch); goals: this process's
+        goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
+      check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
     global generator or a generator of the sampler's own): exact --resume and the same run under any split of
-    the workers into processes (--num-envs, torchrun) depend on it (SPEC §11). What workers share is merged in
-    after_cycle, in worker order.
+    the workers into processes (--num-envs, torchrun) depend on it (SPEC §11).
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
-    goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome: an attempt the
-    cycle's budget cut off has none). A sampler (the section after this one) overrides what it changes."""
+    goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome)."""
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
@@ -1088,11 +990,11 @@ class GoalSampler(Sampler):
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         super().__init__(args, learner, workers)
         self.sp = SocialPartner(args.n_blocks)
-        if args.partner == "person" and not args.eval_only:  # a person chooses instead (its own file, its page)
+        self.person = None  # beyond the paper: a person chooses instead (person_partner.py, its page)
+        if args.partner != "oracle" and not args.eval_only:
             import person_partner  # noqa: PLC0415
 
-            clock = lambda: divmod(learner.segments // (args.n_segments * len(workers)), args.n_cycles)  # noqa: E731
-            self.sp = person_partner.PersonPartner(self.sp, args, clock, count=lambda k: self.stats.update([k]))
+            self.sp = self.person = person_partner.PersonPartner.of(self)
         self.query = None  # beyond the paper (SPEC §7.1): learner_query.py, imported only when its flags are set
         if args.ask_after or args.learner_picks:
             import learner_query  # noqa: PLC0415
@@ -1237,8 +1139,8 @@ class GoalSampler(Sampler):
         self.internalization_buffer = merge_pairs(self.internalization_buffer, merged)
         for w in self.workers:
             w.new_pairs = []
-        if self.args.partner == "person":
-            self.sp.publish(self.learner.graph)
+        if self.person:
+            self.person.publish(self.learner.graph)
 
     def epoch_stats(self) -> dict:
         """Besides autotelic success: the share of social and rehearsal cycles, the learner's queries (the
@@ -1246,7 +1148,8 @@ class GoalSampler(Sampler):
         without a new node at the epoch's end), stepping stones left, the number of distinct internalized
         pairs, the partner's proposals per class (frontier and beyond) and those the agent reached."""
         queries = ["queries", "help_cycles", "help_nothing"]
-        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *queries, *PERSON_COUNTS,
+        person = self.person.COUNTS if self.person else ()  # --partner person: who chose (person_partner.py)
+        counts = summed(self.stats, ["cycles", "social_cycles", "rehearsal_cycles", *queries, *person,
                                      *self.partner_counts])  # fmt: skip
         cycles = max(1, counts["cycles"])
         return super().epoch_stats() | dict(
@@ -1254,19 +1157,19 @@ class GoalSampler(Sampler):
             rehearsal_share=counts["rehearsal_cycles"] / cycles,
             **{k: counts[k] for k in queries},  # the learner's query (learner_query.Query): counts this epoch
             stalled_cycles=self.query.state["stalled"] if self.query else 0,  # its signal at the epoch's end
-            **({k: counts[k] for k in PERSON_COUNTS} if self.args.partner == "person" else {}),
+            **{k: counts[k] for k in person},
             stepping_stones=len(self.sp.stepping_stones(self.learner.graph)),
             internalized_pairs=len(self.internalization_buffer),
             **{k: counts[k] for k in self.partner_counts},
         )
 
     def open(self, folder: Path, stopping: collections.abc.Callable[[], bool]):
-        if self.args.partner == "person":
-            self.sp.open(folder, stopping)  # the page is served from now on; picks.csv in the folder
+        if self.person:
+            self.person.open(folder, stopping)  # the page is served from now on; picks.csv in the folder
 
     def close(self):
-        if self.args.partner == "person":
-            self.sp.close()
+        if self.person:
+            self.person.close()
 
     def state_dict(self) -> dict:
         pairs = torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2)
@@ -1279,8 +1182,6 @@ class GoalSampler(Sampler):
 
 
 STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
-PARTNERS = ("oracle", "person")
-PERSON_COUNTS = ("person_picks", "person_skips", "person_timeouts")  # --partner person: who chose, per epoch
 
 
 def check_sampler_args(a: Args) -> str | None:
@@ -1299,18 +1200,10 @@ def check_sampler_args(a: Args) -> str | None:
 
         if (problem := learner_query.check_args(a)) is not None:
             return problem
-    if a.partner not in PARTNERS:
-        return f"--partner must be one of {', '.join(PARTNERS)}, got {a.partner!r}"
-    if not (math.isfinite(a.person_timeout) and a.person_timeout > 0):
-        return f"--person-timeout must be a number of seconds above 0, got {a.person_timeout}"
-    if not 0 <= a.person_port <= 65535:
-        return f"--person-port must be in [0, 65535], got {a.person_port}"
-    if not a.person_host or ":" in a.person_host:
-        return f"--person-host must be an IPv4 address or a host name, got {a.person_host!r}"
-    if a.partner == "person" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        return f"--partner person takes one process (one page), not {os.environ['WORLD_SIZE']} under torchrun"
-    if a.partner == "person" and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
-        return "--partner person needs social cycles to ask in: give --sp-ratio above 0 or --ask-after above 0"
+    if any(getattr(a, k) != getattr(Args, k) for k in ("partner", "person_timeout", "person_host", "person_port")):
+        import person_partner  # noqa: PLC0415 (beyond the paper: a person as the partner, that file's options)
+
+        return person_partner.check_args(a)
     return None
 
 

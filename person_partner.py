@@ -29,6 +29,7 @@ import hmac
 import http.server
 import ipaddress
 import json
+import math
 import os
 import secrets
 import struct
@@ -47,6 +48,7 @@ import plumbing
 COLOURS = [("red", "#d93333"), ("blue", "#338cd9"), ("green", "#40b34d"), ("yellow", "#f2bf26"), ("purple", "#994dbf")]
 FRAME = 360  # rendered frames are FRAME x FRAME pixels
 MAX_BODY = 1024  # bytes: an answer is {"question": 12, "goal": 123456789}
+PARTNERS = ("oracle", "person")  # --partner
 PICK_COLUMNS = ("time", "epoch", "cycle", "worker", "question", "kind", "here", "offered", "picked", "picked_class",
                 "picked_text", "by", "first_goal", "segments", "outcome")  # fmt: skip
 
@@ -122,6 +124,17 @@ class PersonPartner:
         self.server.handle_error = lambda request, address: None  # a browser gone mid-reply: not the run's concern
         self.port = self.server.server_address[1]
         self.thread = None
+
+    COUNTS = ("person_picks", "person_skips", "person_timeouts")  # progress.csv: who chose, per epoch
+
+    @classmethod
+    def of(cls, sampler) -> PersonPartner:
+        """The partner of gangstr_hme.py's GoalSampler `sampler`, which holds the hooks (after_cycle: publish;
+        epoch_stats: COUNTS; open, close): its simulated partner's candidates, the run's epoch and cycle, and
+        the counts in the sampler's stats."""
+        args, per_cycle = sampler.args, sampler.args.n_segments * len(sampler.workers)
+        clock = lambda: divmod(sampler.learner.segments // per_cycle, args.n_cycles)  # noqa: E731
+        return cls(sampler.sp, args, clock, count=lambda k: sampler.stats.update([k]))
 
     def __getattr__(self, name):  # stepping_stones, oracle, ...: the simulated partner's
         if name == "partner":
@@ -597,3 +610,20 @@ tick();
 </script></body></html>
 """
 )
+
+
+def check_args(a) -> str | None:
+    """The options of this file (--partner, --person-*): the first bad value, described, or None."""
+    if a.partner not in PARTNERS:
+        return f"--partner must be one of {', '.join(PARTNERS)}, got {a.partner!r}"
+    if not (math.isfinite(a.person_timeout) and a.person_timeout > 0):
+        return f"--person-timeout must be a number of seconds above 0, got {a.person_timeout}"
+    if not 0 <= a.person_port <= 65535:
+        return f"--person-port must be in [0, 65535], got {a.person_port}"
+    if not a.person_host or ":" in a.person_host:
+        return f"--person-host must be an IPv4 address or a host name, got {a.person_host!r}"
+    if a.partner == "person" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        return f"--partner person takes one process (one page), not {os.environ['WORLD_SIZE']} under torchrun"
+    if a.partner == "person" and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
+        return "--partner person needs social cycles to ask in: give --sp-ratio above 0 or --ask-after above 0"
+    return None

@@ -10,10 +10,10 @@ own: its Args class (the command line and checkpoints read its fields and docstr
 `Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
 (each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
 agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments and
-plan_seconds. Arrows run one way: scripts -> plumbing -> fetch5_env, oracle_graph.
+plan_seconds. Arrows run one way: scripts -> plumbing -> speed (whether bf16 pays here), fetch5_env,
+oracle_graph. The update's speed tricks are speed.py's.
 
-Sections: command line; processes (SPEC §11); the SAC update's CPU kernels (the scripts' message and node
-nets, backward written out: a speed trick); checkpoints (SPEC §10) and the paper's trained agent;
+Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
 folder and the top level's steps (parse_command_line, job, RunFolder, evaluate_checkpoint, run_main).
 """
@@ -48,10 +48,10 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn as nn
-import torch.nn.functional as F
 
 import fetch5_env
 import oracle_graph as og
+import speed
 
 
 # ------------------------------------------------------------------------------------------------
@@ -172,7 +172,7 @@ def check_device(a) -> str | None:
         return (f"--cuda: this process's GPU is LOCAL_RANK {local_gpu()}, but this machine has "
                 f"{torch.cuda.device_count()} GPU(s): one process per GPU (torchrun --nproc-per-node no "
                 "more)")  # fmt: skip
-    if a.precision == "bf16" and not fast_bf16(a.cuda):
+    if a.precision == "bf16" and not speed.fast_bf16(a.cuda):
         device = "GPU (compute capability under 8.0)" if a.cuda else "CPU (neither AMX nor AVX512-BF16)"
         return f"--precision bf16: this {device} has no bf16 matrix instructions, where bf16 is no faster; use fp32"
     return None
@@ -184,33 +184,6 @@ def local_gpu() -> int:
 
 
 MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 GB of activations
-
-
-def fast_bf16(cuda: bool) -> bool:
-    """Whether --precision bf16 can pay here: this process's GPU has bf16 tensor cores (compute capability 8.0
-    on, or AMD's), or the CPU has bf16 matrix instructions (x86: AMX or AVX512-BF16; ARM: BF16) for oneDNN;
-    without them, bf16 products are emulated."""
-    if cuda:  # not torch.cuda.is_bf16_supported(): it counts emulation (V100, T4) and makes a context on GPU 0
-        return bool(torch.version.hip) or torch.cuda.get_device_capability(local_gpu()) >= (8, 0)
-    caps = torch.cpu.get_capabilities()
-    has_bf16 = any(caps.get(name) for name in ("amx_bf16", "avx512_bf16", "bf16", "sve_bf16"))
-    return torch.backends.mkldnn.is_available() and has_bf16
-
-
-def cpu_line() -> str:
-    """This CPU and its matrix instructions, on the first line of every speed benchmark: each figure names its
-    machine (docs/speed.md). A vague model name ('AMD EPYC' in a VM) gets its family and model numbers."""
-    caps = torch.cpu.get_capabilities()
-    info = Path("/proc/cpuinfo").read_text().split("\n\n")[0] if os.path.exists("/proc/cpuinfo") else ""
-    fields = dict(line.split(":", 1) for line in info.splitlines() if ":" in line)
-    fields = {k.strip(): v.strip() for k, v in fields.items()}
-    name = caps.get("cpu_name") or fields.get("model name") or "unknown CPU"
-    if "cpu family" in fields:
-        name += f" (family {fields['cpu family']}, model {fields.get('model', '?')})"
-    isa = [f"{label} {'yes' if caps.get(key) else 'no'}" for label, key in
-           (("AMX", "amx_bf16"), ("AVX512-BF16", "avx512_bf16"), ("AVX512", "avx512_f"), ("AVX2", "avx2"))]  # fmt: skip
-    bf16 = fast_bf16(cuda=False)
-    return f"CPU: {name}, {os.cpu_count()} CPUs; {', '.join(isa)}; fast bf16: {bf16}; torch {torch.__version__}"
 
 
 def check_run_control(a) -> str | None:
@@ -331,21 +304,6 @@ def sum_grads(params: list[torch.Tensor]):
             g.copy_(synced.view_as(g))
 
 
-def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
-    """float32 arrays (an update's batch) as tensors on `device` (a speed trick; docs/scaling.md).
-    On CPU, the arrays themselves: no copy. On a GPU, one copy of them all from pinned memory, which the CPU
-    need not wait for: it draws the next batch while the GPU works (it took ten blocking copies, the observations
-    twice, before). Torch's cache of pinned memory reuses the block once its copy is done."""
-    if device.type == "cpu":
-        return {k: torch.from_numpy(v) for k, v in arrays.items()}
-    sizes = [v.size for v in arrays.values()]
-    assert all(v.dtype == np.float32 for v in arrays.values()), {k: v.dtype for k, v in arrays.items()}
-    staging = torch.empty(sum(sizes), dtype=torch.float32, pin_memory=torch.cuda.is_available())
-    np.concatenate([v.ravel() for v in arrays.values()], out=staging.numpy())
-    parts = staging.to(device, non_blocking=True).split(sizes)
-    return {k: t.view(v.shape) for (k, v), t in zip(arrays.items(), parts, strict=True)}
-
-
 def check_budgets(run):
     """After a cycle: every worker spent exactly its budget of segments (a cycle spends all of w.left, Sampler).
     Otherwise stop now, naming the sampler and the worker: with one worker a short cycle would silently store
@@ -365,176 +323,6 @@ def budget_error(program: str, what: str):
 def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
     """Counts of this process's workers (a goal sampler's stats), summed over every process."""
     return dict(zip(keys, all_sum(np.array([counts[k] for k in keys], dtype=np.float64)), strict=True))
-
-
-# ------------------------------------------------------------------------------------------------
-# The SAC update's CPU kernels (a speed trick; docs/speed.md): the message and node nets of the
-# training scripts, the same math, each one autograd node with its backward written out. Products by
-# oneDNN, ReLUs fused into them or applied in place, only the gradients that are needed.
-# ------------------------------------------------------------------------------------------------
-ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-
-
-def product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
-    """x (rows, in) times w (out, in) transposed, + bias, ReLU if asked, summed in fp32: oneDNN's linear, which
-    applies the ReLU while the output is still in cache (torch's CPU product goes to MKL, slow on AMD)."""
-    if ONEDNN:
-        return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
-    y = F.linear(x, w, bias)
-    return y.relu_() if relu else y
-
-
-def weight_grad(g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """g^T x in fp32: the gradient of a layer's weight, for its output gradient g (rows, out) and input x
-    (rows, in). oneDNN copies a transposed first operand, so the narrower one goes first."""
-    w = product(g.t(), x.t()) if g.shape[1] <= x.shape[1] else product(x.t(), g.t()).t()
-    return w.float().contiguous()
-
-
-def bias_grad(g: torch.Tensor) -> torch.Tensor:
-    return g.sum(0, dtype=torch.float32)
-
-
-def relu_backward_(g: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """g zeroed in place where the ReLU's output y is 0."""
-    return torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
-
-
-def live_rows(grad: torch.Tensor, multiple: int = 32) -> torch.Tensor:
-    """The rows of grad that are not all zero, then zero rows up to a multiple of 32: oneDNN builds a product
-    for each new shape (about 1 ms), so a few shapes, not one per count."""
-    live = grad.any(1)
-    k = min(len(grad), -(-int(live.sum()) // multiple) * multiple)
-    return live.byte().argsort(descending=True, stable=True)[:k]
-
-
-class NodeNet(torch.autograd.Function):
-    """The scripts' node_sum of one Linear -> ReLU -> Linear -> ReLU net. Its backward skips the samples whose
-    gradient is zero: in the actor loss, min(Q1, Q2) sends each sample's gradient to one twin, so each twin
-    back-propagates about half the batch."""
-
-    @staticmethod
-    def forward(ctx, glob, local, w1, b1, w2, b2, dtype):
-        b, n, _ = local.shape
-        x = torch.cat([glob[:, None].expand(-1, n, -1), local], dim=-1).view(b * n, -1).to(dtype)  # [glob, local_i]
-        w1, w2 = w1.to(dtype), w2.to(dtype)
-        h = product(x, w1, b1.to(dtype), relu=True)  # (B n, hidden)
-        y = product(h, w2, b2.to(dtype), relu=True)  # (B n, out)
-        ctx.save_for_backward(x, h, y, w1, w2)
-        ctx.shape = b, n, glob.shape[1]
-        return y.view(b, n, -1).sum(1, dtype=torch.float32)
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, h, y, w1, w2 = ctx.saved_tensors
-        (b, n, k), need = ctx.shape, ctx.needs_input_grad
-        rows = None if need[2] else live_rows(grad)  # without weight gradients: live samples alone
-        if rows is not None:
-            grad, h, y = grad[rows], *(t.view(b, n, -1)[rows].flatten(0, 1) for t in (h, y))
-        m, hidden, out = len(grad), len(w1), len(w2)  # (sizes spelled out: m may be 0)
-        g = grad.to(w2.dtype)[:, None].expand(m, n, out)  # every node's output gets the sum's gradient
-        g = torch.ops.aten.threshold_backward(g, y.view(m, n, out), 0).view(m * n, out)
-        gh = relu_backward_(product(g, w2.t()), h)  # (B n, hidden)
-        grads = [None] * 7
-        if need[0]:
-            grads[0] = gh.view(m, n, hidden).sum(1, dtype=torch.float32) @ w1[:, :k].float()
-        if need[1]:
-            grads[1] = product(gh, w1[:, k:].t().contiguous()).view(m, n, len(w1[0]) - k).float()
-        if rows is not None:  # zeros for the samples without gradient
-            grads[:2] = [t if t is None else t.new_zeros(b, *t.shape[1:]).index_copy_(0, rows, t) for t in grads[:2]]
-        if need[2]:
-            grads[2:6] = weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g)
-        return tuple(grads)
-
-
-def fused_edge_max(edges, w1, b1, w2, b2, n: int, dtype):
-    """The scripts' edge_max of one Linear -> ReLU -> Linear -> ReLU net. Without gradients (the TD target's),
-    in chunks of 64 samples, so that each chunk's hidden layer is still in cache for its second product."""
-    if torch.is_grad_enabled() and w1.requires_grad:
-        return EdgeMax.apply(edges, w1, b1, w2, b2, n, dtype)
-    return torch.cat([edge_nets(e, w1, b1, w2, b2, n, dtype)[3] for e in edges.split(64)])
-
-
-def edge_nets(edges, w1, b1, w2, b2, n: int, dtype):
-    """The net on every edge (B, E, in), and its max over each node's n - 1 edges: (x, h, y, max)."""
-    x = edges.reshape(-1, edges.shape[-1]).to(dtype)
-    h = product(x, w1.to(dtype), b1.to(dtype), relu=True)  # (B E, hidden)
-    y = product(h, w2.to(dtype), b2.to(dtype), relu=True).view(len(edges), n, n - 1, -1)
-    return x, h, y, y.amax(dim=2)
-
-
-class EdgeMax(torch.autograd.Function):
-    """fused_edge_max with gradients. The max's gradient goes to the edge that gave it (shared among exact ties, as
-    torch's amax does), where the ReLU let it through."""
-
-    @staticmethod
-    def forward(ctx, edges, w1, b1, w2, b2, n, dtype):
-        x, h, y, out = edge_nets(edges, w1, b1, w2, b2, n, dtype)
-        ctx.save_for_backward(x, h, y, out, w2.to(dtype))
-        return out
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, h, y, out, w2 = ctx.saved_tensors
-        hit = (y == out[:, :, None]) & (y > 0)
-        g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)
-        g = g.view(-1, y.shape[-1])  # (B E, out)
-        gh = relu_backward_(product(g, w2.t()), h)
-        return None, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g), None, None
-
-
-def kernels_compute(losses, update_products, n_blocks: int, params: list[torch.Tensor]) -> bool:
-    """Whether the kernels above compute a script's SAC losses (its SAC.losses) as its plain nets do, on a small
-    batch of random inputs: the losses, TD targets and the gradients of the networks' weights `params`, within
-    update_products(fp32, kernels) and without the kernels, equal up to float rounding. The kernels implement
-    the scripts' MLP as written (Linear -> ReLU -> Linear (-> ReLU), max over edges, sum over nodes); a fork
-    that changes MLP or an aggregation changes the plain nets alone. Then False, said in one line: the update
-    runs the plain nets. Draws from its own generator (the run's random streams are untouched) and changes no
-    weight or gradient."""
-    gen = torch.Generator().manual_seed(0)
-    rows, obs_dim, dim = 16, fetch5_env.obs_size(n_blocks), og.config_dim(n_blocks)
-    normal = lambda *shape: torch.randn(*shape, generator=gen)  # noqa: E731
-    config = lambda: torch.randint(0, 2, (rows, dim), generator=gen).float() * 2 - 1  # noqa: E731
-    batch = dict(obs=normal(rows, obs_dim), obs_next=normal(rows, obs_dim), ag=config(), ag_next=config(),
-                 g=config(), action=normal(rows, 4).tanh(), reward=torch.randint(0, 2, (rows,), generator=gen).float(),
-                 noise_next=normal(rows, 4), noise_pi=normal(rows, 4))  # fmt: skip
-    values = []
-    for kernels in (True, False):
-        try:
-            with update_products(torch.float32, kernels):
-                critic_loss, actor_loss, target, _ = losses(batch)
-            grads = torch.autograd.grad(critic_loss + actor_loss, params, allow_unused=True)
-            grads = [torch.full((1,), math.nan) if g is None else g.reshape(-1) for g in grads]  # unused: nan
-            values.append(torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target, *grads]))
-        except Exception as e:  # noqa: BLE001 (a net the kernels cannot run, of another shape: not theirs)
-            values.append(e)
-    same = all(isinstance(v, torch.Tensor) for v in values) and values[0].shape == values[1].shape
-    same = same and torch.allclose(*values, rtol=1e-4, atol=1e-4, equal_nan=True)
-    if not same and rank() == 0:
-        print("CPU kernels off: plumbing's kernels no longer compute this script's nets (MLP, node_sum or edge_max "
-              "changed); the SAC update runs the plain nets", flush=True)  # fmt: skip
-    return same
-
-
-class Head(torch.autograd.Function):
-    """A head (Linear -> ReLU -> Linear, fp32, on the node read-out), its products by oneDNN as the kernels
-    above: torch's go to MKL, at half oneDNN's rate on the AMD EPYC with AVX512-BF16 (docs/speed.md)."""
-
-    @staticmethod
-    def forward(ctx, x, w1, b1, w2, b2):
-        h = product(x, w1, b1, relu=True)
-        ctx.save_for_backward(x, h, w1, w2)
-        return product(h, w2, b2)
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, h, w1, w2 = ctx.saved_tensors
-        g = grad.contiguous()
-        gh = relu_backward_(product(g, w2.t()), h)
-        grad_x = product(gh, w1.t()) if ctx.needs_input_grad[0] else None
-        if not ctx.needs_input_grad[1]:  # the actor loss: the critic's heads are constants there
-            return grad_x, None, None, None, None
-        return grad_x, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -702,7 +490,7 @@ def checkpoint_error(flag: str, path: str, reason: str):
 
 # What --resume may change:
 RUN_CONTROL = ("n_epochs", "threads", "cuda", "compile", "precision", "plain", "save_buffer", "resume")
-# --eval-only's own; among them precision: acting never computes in bf16 (update_products), so a run trained
+# --eval-only's own; among them precision: acting never computes in bf16 (speed.fast_nets), so a run trained
 # in bf16 is evaluated in fp32 unless the flag says otherwise, where bf16 is slow too.
 EVAL_CONTROL = ("seed", "eval_goals_per_class", "max_eval_subgoals", "capture_video", "video_episodes", "plan_on",
                 "threads", "cuda", "precision", "plain", "eval_only", "checkpoint", "runs_dir", "exp_name", "num_envs",
@@ -802,8 +590,9 @@ def blocks_of(state: dict) -> int:
 def load_weights(agent, state: dict, args, path: str, flag: str):
     """A checkpoint's networks and normalizer (ours or the paper's), nothing else: what --init-from starts from,
     and all that the paper's file holds. The target critic is a copy of the critic, as in any new run (the
-    paper's file has none). The paper's statistics come without a count: they weigh as --init-prior-count
-    observations (Normalizer.add_prior); ours keep their own count."""
+    paper's file has none). The paper's statistics come without a count: they count as --init-prior-count
+    observations that had this mean and std, against which later data weighs in as against as many of ours;
+    ours keep their own count."""
     try:
         agent.actor.load_state_dict(state["actor"])
         agent.critic.load_state_dict(state["critic"])
@@ -814,7 +603,8 @@ def load_weights(agent, state: dict, args, path: str, flag: str):
     if "count" in stats:
         agent.normalizer.add(stats["sum"].numpy(), stats["sumsq"].numpy(), stats["count"])
     else:
-        agent.normalizer.add_prior(stats["mean"], stats["std"], args.init_prior_count)
+        n, (mean, std) = args.init_prior_count, (np.asarray(stats[k], np.float64) for k in ("mean", "std"))
+        agent.normalizer.add(n * mean, n * (std**2 + mean**2), n)
 
 
 def args_with_blocks_of(args, given: set[str], state: dict, path: str, flag: str):

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import gangstr_hme as gh  # noqa: E402
-import plumbing  # noqa: E402
+import speed  # noqa: E402
 
 
 def median_ms(fn, repeats, warmup=3):
@@ -103,7 +103,7 @@ def main():
     parser.add_argument("--n-blocks", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()
-    print(plumbing.cpu_line())
+    print(speed.cpu_line())
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     n = args.n_blocks
@@ -118,7 +118,7 @@ def main():
     batch = learner.buffer.sample(256, [rng], 0.8, "final")
     gnn_ms = median_ms(lambda: learner.agent.update(batch), args.repeats)
     bf16_ms = None
-    if plumbing.fast_bf16(cuda=False):
+    if speed.fast_bf16(cuda=False):
         bf16 = gh.SAC(gh.Args(n_blocks=n, precision="bf16"), learner.agent.normalizer.sum.shape[0], torch.device("cpu"))
         for net in ("actor", "critic", "critic_target"):
             getattr(bf16, net).load_state_dict(getattr(learner.agent, net).state_dict())

@@ -27,6 +27,7 @@ import bench_grasp  # noqa: E402 (this folder: TIP_ANGLE)
 
 import gangstr_hme as gh  # noqa: E402
 import plumbing  # noqa: E402
+import speed  # noqa: E402
 
 
 def tipped_share(segments: list, n_blocks: int) -> tuple[int, int]:
@@ -73,7 +74,7 @@ def main():
     classes = [k for k in results[0]["sr"] if k != "global"]
     pooled = {k: float(np.mean([r["sr"][k] for r in results])) for k in classes}
     pooled["global"] = float(np.mean([pooled[k] for k in classes]))
-    print(plumbing.cpu_line())
+    print(speed.cpu_line())
     print("versions: " + ", ".join(f"{k} {v}" for k, v in plumbing.library_versions().items()))
     print(f"the paper's agent, sub-goals planned on the {ns.plan_on}'s graph, seeds {ns.seeds} x {ns.goals} goals "
           "per class, pooled:")  # fmt: skip

@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 import gangstr_hme as gh  # noqa: E402
 import plumbing  # noqa: E402
+import speed  # noqa: E402
 
 
 def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
@@ -65,7 +66,7 @@ def cycle_profile(args) -> tuple[float, dict]:
     learner = run.learner
     seconds = dict.fromkeys(["acting", "physics", "SAC updates"], 0.0)
     learner.agent.act = timed(seconds, "acting", learner.agent.act)
-    gh.step_envs = timed(seconds, "physics", gh.step_envs)  # run_segments looks it up at call time
+    speed.step_envs = timed(seconds, "physics", speed.step_envs)  # run_segments looks it up at call time
     learner.train = timed(seconds, "SAC updates", learner.train)
 
     def one_cycle():
@@ -98,7 +99,7 @@ def main():
     parser.add_argument("--skip-24", action="store_true", help="only the 1- and 2-worker conditions")
     parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"], help="the update's (docs/speed.md)")
     args = parser.parse_args()
-    print(plumbing.cpu_line())
+    print(speed.cpu_line())
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
     conditions = {
         "1 process, 1 worker": ([sys.executable], ["--num-envs", "1"]),

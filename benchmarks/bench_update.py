@@ -11,7 +11,7 @@
   precision, before and now.
 
 Each measured condition runs in a fresh process (the update's memory settings are process-wide: see
-keep_freed_memory), the conditions interleaved round by round so that drifts in the machine's load hit each.
+speed.keep_freed_memory), the conditions interleaved round by round so that drifts in the machine's load hit each.
 The code of 2f9820b comes from git (`git show 2f9820b:gangstr_hme.py`), imported from a temporary folder.
 
 --drift: from the same start and the same batches, 1,000 updates in bf16 and in fp32, and in fp32
@@ -44,14 +44,15 @@ N_BLOCKS, BATCH = 5, 256
 
 def load(code: str, folder: Path):
     """The training script at `code`: 'now' (this checkout's gangstr_hme.py; 'now-default-heap': without
-    keep_freed_memory, to show what it buys; 'now-plain': run with --plain) or 'before' (BEFORE's, from git,
+    speed.keep_freed_memory, to show what it buys; 'now-plain': run with --plain) or 'before' (BEFORE's, from git,
     written to `folder` and imported under another name; it imports this checkout's env and oracle, whose
-    assets sit beside them). BEFORE had no plumbing.py: its script holds all it runs."""
+    assets sit beside them). BEFORE had no plumbing.py or speed.py: its script holds all it runs."""
     if code.startswith("now"):
         import gangstr_hme  # noqa: PLC0415
+        import speed  # noqa: PLC0415
 
         if code == "now-default-heap":
-            gangstr_hme.keep_freed_memory = lambda: None
+            speed.keep_freed_memory = lambda: None
         return gangstr_hme
     path = folder / f"gangstr_{BEFORE}.py"
     if not path.exists():
@@ -324,10 +325,10 @@ def main():
     ns = parser.parse_args()
     if ns.worker:
         return worker(ns)
-    import plumbing  # noqa: PLC0415
+    import speed  # noqa: PLC0415
 
-    print(plumbing.cpu_line())
-    bf16 = plumbing.fast_bf16(cuda=False)  # without bf16 instructions, --precision bf16 is refused: fp32 alone
+    print(speed.cpu_line())
+    bf16 = speed.fast_bf16(cuda=False)  # without bf16 instructions, --precision bf16 is refused: fp32 alone
     precisions = ("fp32", "bf16") if bf16 else ("fp32",)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)

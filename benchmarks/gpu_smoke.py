@@ -45,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 import gangstr_hme as gh  # noqa: E402
 import plumbing  # noqa: E402
+import speed  # noqa: E402
 
 TINY = ["--n-blocks", "3", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "4", "--batch-size", "32",
         "--segment-len", "10", "--stable-steps", "3", "--eval-goals-per-class", "2", "--buffer-size", "2000",
@@ -96,7 +97,7 @@ def versions() -> str:
     return (f"torch {torch.__version__}, CUDA {torch.version.cuda}, cuDNN {torch.backends.cudnn.version()}, "
             f"MuJoCo {mujoco.__version__}, numpy {np.__version__}; {torch.cuda.device_count()} GPU(s), "
             f"GPU 0: {p.name}, compute capability {p.major}.{p.minor}, {p.total_memory / 2**30:.0f} GiB; "
-            f"fast bf16: {plumbing.fast_bf16(cuda=True)}")  # fmt: skip
+            f"fast bf16: {speed.fast_bf16(cuda=True)}")  # fmt: skip
 
 
 def one_update(device: str, precision: str, weights: dict) -> tuple[dict, torch.Tensor, dict]:
@@ -127,7 +128,7 @@ def update_on_cpu_and_gpu() -> tuple[bool, str]:
     fp32 = gaps(one_update("cuda", "fp32", weights))
     passed = max(fp32) < 1e-4  # float sums in another order; test_update holds the CPU's to 1e-5 of SPEC §5's
     detail = f"fp32 GPU vs CPU: losses {fp32[0]:.1e}, targets {fp32[1]:.1e}, worst gradient {fp32[2]:.1e} (< 1e-4)"
-    if plumbing.fast_bf16(cuda=True):
+    if speed.fast_bf16(cuda=True):
         plumbing.init_workers(gh.Args(cuda=True, precision="bf16"))  # a bf16 run's settings: cuBLAS sums in fp32
         bf16, bounds = gaps(one_update("cuda", "bf16", weights)), tu.BF16_BOUNDS
         passed &= bf16[0] < bounds["losses"] and bf16[1] < bounds["targets"] and bf16[2] < bounds["gradients"]
@@ -289,7 +290,7 @@ def main() -> int:
     tmp = Path(args.keep or tempfile.mkdtemp(prefix="gpu_smoke-"))
     tmp.mkdir(parents=True, exist_ok=True)
     report("INFO", "versions", versions())
-    bf16 = plumbing.fast_bf16(cuda=True)
+    bf16 = speed.fast_bf16(cuda=True)
     runs = {  # name: (script, flags, epochs)
         "two_epochs": ("gangstr_hme.py", ["--cuda"], 2), "two_epochs_bis": ("gangstr_hme.py", ["--cuda"], 2),
         "one_epoch": ("gangstr_hme.py", ["--cuda"], 1), "cpu": ("gangstr_hme.py", [], 1),

@@ -1,7 +1,7 @@
 """What a fork of a training script may change without silently breaking the run: a goal sampler that spends
 too few or too many of a cycle's segments is stopped at once, naming itself and the worker (Sampler's
-contract); a changed MLP takes the update off the CPU kernels, which implement the nets as written; --plain
-turns every speed trick off."""
+contract); a changed MLP takes the update off speed.py's fast nets, which implement the nets as written;
+--plain turns every speed trick off."""
 
 import math
 
@@ -14,6 +14,7 @@ import gangstr_hme as gh
 import lp_baseline as lp
 import oracle_graph as og
 import plumbing
+import speed
 import vds_baseline as vds
 
 N = 3
@@ -70,13 +71,13 @@ def test_a_cycle_that_spends_its_budget_passes_the_check(module, monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------------
-# The CPU kernels implement MLP as written; --plain
+# The fast nets (speed.py: the CPU kernels, the large nets' products) implement MLP as written; --plain
 # ------------------------------------------------------------------------------------------------
 def spy_on_kernels(monkeypatch) -> list[str]:
-    """The names of plumbing's kernels as the update calls them."""
+    """The names of speed.py's CPU kernels as the update calls them."""
     calls = []
     for name in ("NodeNet", "EdgeMax", "Head"):
-        kernel = getattr(plumbing, name)
+        kernel = getattr(speed, name)
         monkeypatch.setattr(kernel, "apply", lambda *a, _apply=kernel.apply, _n=name: calls.append(_n) or _apply(*a))
     return calls
 
@@ -109,7 +110,7 @@ def tanh_mlp(self, x):
 def test_the_update_runs_the_cpu_kernels_on_the_nets_they_implement(module, monkeypatch):
     calls = spy_on_kernels(monkeypatch)
     agent = one_update(module, module.Args(n_blocks=N))
-    assert agent.kernels and {"NodeNet", "EdgeMax", "Head"} <= set(calls)
+    assert agent.fast_nets and {"NodeNet", "EdgeMax", "Head"} <= set(calls)
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
@@ -118,22 +119,20 @@ def test_a_fork_that_changes_mlp_gets_the_plain_nets_said_in_one_line(module, mo
     calls = spy_on_kernels(monkeypatch)
     agent = one_update(module, module.Args(n_blocks=N))
     out = capsys.readouterr().out
-    assert not agent.kernels and len(out.strip().splitlines()) == 1 and "CPU kernels off" in out
+    assert not agent.fast_nets and len(out.strip().splitlines()) == 1 and "fast nets off" in out
     calls.clear()
     agent.update(random_batch(agent, seed=1))
     assert calls == []  # the update ran the fork's nets, not the kernels
 
 
 def test_a_fork_that_changes_an_aggregation_gets_the_plain_nets(monkeypatch, capsys):
-    def mean_over_edges(net, edges, n):  # a fork's message passing: mean in place of max, kernels untouched
-        if gh.fused(edges):
-            return plumbing.fused_edge_max(edges, *net.params(), n, gh.update_products.dtype)
+    def mean_over_edges(net, edges, n):  # a fork's message passing: mean in place of max
         m = net(edges)
         return m.reshape(len(m), n, n - 1, m.shape[-1]).mean(dim=2)
 
     monkeypatch.setattr(gh, "edge_max", mean_over_edges)
-    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).kernels
-    assert "CPU kernels off" in capsys.readouterr().out
+    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).fast_nets
+    assert "fast nets off" in capsys.readouterr().out
 
 
 def test_a_fork_whose_mlp_computes_the_same_values_but_other_gradients_gets_the_plain_nets(monkeypatch, capsys):
@@ -144,17 +143,28 @@ def test_a_fork_whose_mlp_computes_the_same_values_but_other_gradients_gets_the_
         return F.relu(x) if self.out_relu else x
 
     monkeypatch.setattr(gh.MLP, "forward", detached_hidden)
-    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).kernels
-    assert "CPU kernels off" in capsys.readouterr().out
+    assert not gh.SAC(gh.Args(n_blocks=N), 10 + 15 * N, torch.device("cpu")).fast_nets
+    assert "fast nets off" in capsys.readouterr().out
+
+
+def test_off_the_cpu_kernels_the_probe_still_holds_the_fast_nets_to_mlp(monkeypatch, capsys):
+    """On a GPU or under --compile the fast nets are the large nets' products in the update's dtype (speed.py's
+    fast_forward, MLP written again): the probe without the kernels finds a changed MLP too."""
+    agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
+    calls = spy_on_kernels(monkeypatch)
+    assert speed.fast_nets_compute(agent, gh, kernels=False) and calls == []  # the products alone, no kernel
+    monkeypatch.setattr(gh.MLP, "forward", tanh_mlp)
+    assert not speed.fast_nets_compute(agent, gh, kernels=False)
+    assert "fast nets off" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
 def test_plain_turns_every_speed_trick_off(module, monkeypatch):
     freed = []
-    monkeypatch.setattr(module, "keep_freed_memory", lambda: freed.append(True))
+    monkeypatch.setattr(speed, "keep_freed_memory", lambda: freed.append(True))
     calls = spy_on_kernels(monkeypatch)
     agent = one_update(module, module.Args(n_blocks=N, plain=True))
-    assert not agent.kernels and calls == [] and freed == []
+    assert agent.compute_losses == agent.losses and calls == [] and freed == []
     assert not agent.actor_opt.defaults["fused"] and not agent.critic_opt.defaults["fused"]
     fast = one_update(module, module.Args(n_blocks=N))
     assert fast.actor_opt.defaults["fused"] and fast.critic_opt.defaults["fused"] and freed == [True]
@@ -162,7 +172,7 @@ def test_plain_turns_every_speed_trick_off(module, monkeypatch):
 
 @pytest.mark.parametrize("flags, named", [(["--compile"], "--compile"), (["--precision", "bf16"], "--precision bf16")])
 def test_plain_refuses_the_speed_flags_in_one_line(monkeypatch, capsys, flags, named):
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: True)
     with pytest.raises(SystemExit) as e:
         plumbing.parse_args(gh.Args, gh.check_sampler_args, ["--plain", *flags])
     err = capsys.readouterr().err

@@ -26,6 +26,7 @@ from chisquare import uniform_pvalue
 import gangstr_hme as gh
 import oracle_graph as og
 import plumbing
+import speed
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16",
@@ -144,7 +145,7 @@ def test_every_net_is_linear_relu_linear_with_the_final_relu_only_where_the_spec
     y = h @ net.out.weight.T + net.out.bias
     torch.testing.assert_close(net(x), y.clamp(min=0) if out_relu else y)
     assert (y < 0).any()  # so that the final ReLU, or its absence, shows
-    torch.testing.assert_close(gh.weight_view(net)(x), net(x))  # the acting view computes the same
+    torch.testing.assert_close(speed.weight_view(net)(x), net(x))  # the acting view computes the same
 
 
 def test_parameter_count_matches_the_layer_sizes_of_the_spec():
@@ -653,7 +654,8 @@ def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_w
     args = gh.Args(n_blocks=3, n_updates=0, freeze_normalizer=True, n_segments=3, segment_len=10, stable_steps=3)
     run = gh.Run(args, torch.device("cpu"))
     agent = run.learner.agent
-    agent.normalizer.add_prior(np.linspace(-1, 1, 55), np.full(55, 0.5), 1000)  # as --init-from's file would
+    mean = np.linspace(-1, 1, 55)  # and std 0.5, counted as 1000 observations: as --init-from's file would
+    agent.normalizer.add(1000 * mean, 1000 * (0.5**2 + mean**2), 1000)
 
     def state():
         nets = {k: copy.deepcopy(getattr(agent, k).state_dict()) for k in plumbing.NETWORKS}

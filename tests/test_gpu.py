@@ -16,6 +16,7 @@ import torch
 
 import gangstr_hme as gh
 import plumbing
+import speed
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,7 +43,7 @@ def one_gpu(monkeypatch, capability=(9, 0)):
 def test_a_bf16_checkpoint_is_evaluated_in_fp32_where_bf16_is_slow(monkeypatch, tmp_path, flags):
     run = gh.Run(gh.Args(n_blocks=3, buffer_size=400, precision="bf16"), torch.device("cpu"))
     plumbing.save_checkpoint(plumbing.save_state(run), tmp_path / "agent.pt")
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)  # a laptop: no AMX, no AVX512-BF16
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)  # a laptop: no AMX, no AVX512-BF16
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--eval-goals-per-class", "1", *flags]
     args, _, _ = plumbing.parse_command_line(gh.Args, gh.check_sampler_args, argv)
     assert args.precision == "fp32" and args.n_blocks == 3
@@ -55,9 +56,9 @@ def test_a_bf16_checkpoint_still_resumes_in_bf16_only_where_bf16_is_fast(monkeyp
     """Training does compute in bf16: --resume keeps refusing it where it is slow (test_update.py), and keeps
     the checkpoint's bf16 where it is fast."""
     state = {"args": dataclasses.asdict(gh.Args(precision="bf16", n_blocks=3))}
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: True)
     assert plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume"}, state, "--resume").precision == "bf16"
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)
     with pytest.raises(SystemExit):
         plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume"}, state, "--resume")
     assert "--precision bf16" in capsys.readouterr().err
@@ -157,7 +158,7 @@ def test_bf16_is_fast_on_a_gpu_of_compute_capability_8_and_not_where_it_is_emula
     """V100 (7.0) and T4 (7.5) run bf16 through emulation, which torch.cuda.is_bf16_supported() counts; A100 (8.0)
     and H100 (9.0) have bf16 tensor cores."""
     one_gpu(monkeypatch, capability)
-    assert plumbing.fast_bf16(cuda=True) == fast
+    assert speed.fast_bf16(cuda=True) == fast
     assert (plumbing.check_args(gh.Args(cuda=True, precision="bf16"), gh.check_sampler_args) is None) == fast
 
 
@@ -167,9 +168,9 @@ def test_a_torchrun_process_asks_its_own_gpu_whether_bf16_is_fast(monkeypatch):
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: capabilities[device])
     monkeypatch.setenv("LOCAL_RANK", "1")
-    assert plumbing.fast_bf16(cuda=True)
+    assert speed.fast_bf16(cuda=True)
     monkeypatch.setenv("LOCAL_RANK", "0")
-    assert not plumbing.fast_bf16(cuda=True)
+    assert not speed.fast_bf16(cuda=True)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 import gangstr_hme as gh
 import oracle_graph as og
 import plumbing
+import speed
 
 N_BLOCKS, BATCH = 5, 128
 
@@ -124,7 +125,7 @@ def test_the_fast_fp32_update_computes_the_spec_losses_targets_and_gradients_to_
 
 
 def test_bf16_keeps_weights_optimizer_state_targets_and_losses_in_fp32_and_computes_the_same_update():
-    if not plumbing.fast_bf16(cuda=False):
+    if not speed.fast_bf16(cuda=False):
         pytest.skip("this CPU has no bf16 matrix instructions (--precision bf16 is refused here)")
     (critic_loss, actor_loss, y, grads), (ref_critic, ref_actor, ref_y, ref_grads), agent = update_and_reference("bf16")
     nets = [agent.actor, agent.critic, agent.critic_target]
@@ -146,18 +147,18 @@ BF16_BOUNDS = dict(losses=0.05, targets=0.05, gradients=0.2)
 
 
 def test_bf16_is_refused_with_one_line_where_the_device_has_no_fast_bf16(monkeypatch, capsys):
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)
     with pytest.raises(SystemExit) as e:
         plumbing.parse_args(gh.Args, gh.check_sampler_args, ["--precision", "bf16"])
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "--precision bf16" in err and len(err.strip().splitlines()) == 1
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: True)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: True)
     assert plumbing.check_args(gh.Args(precision="bf16"), gh.check_sampler_args) is None
 
 
 def test_a_bf16_checkpoint_resumed_where_bf16_is_slow_is_refused_unless_fp32_is_given(monkeypatch, capsys):
-    monkeypatch.setattr(plumbing, "fast_bf16", lambda cuda: False)
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)
     state = {"args": dataclasses.asdict(gh.Args(precision="bf16", n_blocks=3))}
     with pytest.raises(SystemExit) as e:
         plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume"}, state, "--resume")
@@ -172,18 +173,17 @@ def test_a_bf16_checkpoint_resumed_where_bf16_is_slow_is_refused_unless_fp32_is_
 )
 def test_fast_bf16_on_cpu_means_amx_or_avx512_bf16(monkeypatch, flags, fast):
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: flags)
-    assert plumbing.fast_bf16(cuda=False) == (fast and torch.backends.mkldnn.is_available())
+    assert speed.fast_bf16(cuda=False) == (fast and torch.backends.mkldnn.is_available())
 
 
-# --- the update's CPU kernels (plumbing.NodeNet, fused_edge_max, Head) against the plain nets -----------------
-def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
-    """A node net's readout, a head on it and a message net's max over edges, forward and every gradient, by
-    the CPU kernels (fused) or the plain nets and torch's autograd. The node readout as the actor loss uses it
-    (weights fixed, gradients to the action alone, zero for a third of the samples, as min(Q1, Q2) leaves
-    them, and for all of them once) and as the critic loss does (weights and messages); both nets with
-    gradients and without (the TD target's; the messages then in chunks: 70 samples, not a multiple of the
-    chunk)."""
-    monkeypatch.setattr(gh, "fused", lambda x: fused)
+# --- the update's CPU kernels (speed.NodeNet, fused_edge_max, Head) against the plain nets --------------------
+def nets_and_grads(fused: bool, dtype: torch.dtype, seed: int = 0):
+    """A node net's readout, a head on it and a message net's max over edges, forward and every gradient, within
+    speed.fast_nets: by the CPU kernels (fused) or the plain nets (their products in dtype) and torch's autograd.
+    The node readout as the actor loss uses it (weights fixed, gradients to the action alone, zero for a third of
+    the samples, as min(Q1, Q2) leaves them, and for all of them once) and as the critic loss does (weights and
+    messages); both nets with gradients and without (the TD target's; the messages then in chunks: 70 samples,
+    not a multiple of the chunk)."""
     torch.manual_seed(seed)
     b, n = 70, N_BLOCKS
     node, message = gh.MLP(4 + 10 + 15 + 24, 256, 159, large=True), gh.MLP(8, 256, 24, large=True)
@@ -192,9 +192,9 @@ def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
     local.requires_grad_()
     weights = list(node.parameters()) + list(message.parameters()) + list(head.parameters())
     out = {}
-    with gh.update_products(dtype):
+    with speed.fast_nets(gh, dtype, kernels=fused):
         live = torch.rand(b, 1) < 0.67  # the samples whose twin was the min
-        fixed = gh.weight_view(node)  # the actor loss reads the critic's weights as constants
+        fixed = speed.weight_view(node)  # the actor loss reads the critic's weights as constants
         (gh.node_sum(fixed, glob, local.detach()) * live * torch.randn(b, 159)).sum().backward()
         out["actor loss: action"] = glob.grad.clone()
         glob.grad = None
@@ -213,8 +213,8 @@ def nets_and_grads(fused: bool, dtype: torch.dtype, monkeypatch, seed: int = 0):
     return out
 
 
-def test_the_cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32(monkeypatch):
-    fused, plain = (nets_and_grads(f, torch.float32, monkeypatch) for f in (True, False))
+def test_the_cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32():
+    fused, plain = (nets_and_grads(f, torch.float32) for f in (True, False))
     assert fused.keys() == plain.keys()
     worst = max(plain, key=lambda k: relative(fused[k], plain[k]))
     assert relative(fused[worst], plain[worst]) < 1e-5, worst
@@ -224,23 +224,23 @@ def test_the_cpu_kernels_compute_the_plain_nets_and_their_gradients_in_fp32(monk
 def test_the_cpu_kernels_compute_the_plain_nets_in_bf16_on_any_cpu(monkeypatch):
     """torch's bf16 products in place of oneDNN's (which need bf16 instructions): the kernels' bf16 casts and
     fp32 sums, checked where --precision bf16 itself is refused."""
-    monkeypatch.setattr(plumbing, "ONEDNN", False)
-    fused, plain = (nets_and_grads(f, torch.bfloat16, monkeypatch) for f in (True, False))
+    monkeypatch.setattr(speed, "ONEDNN", False)
+    fused, plain = (nets_and_grads(f, torch.bfloat16) for f in (True, False))
     assert fused["readout"].dtype == torch.float32 and all(g.dtype == torch.float32 for k, g in fused.items())
     assert max(relative(fused[k], plain[k]) for k in plain) < BF16_BOUNDS["gradients"]
-    fp32 = nets_and_grads(True, torch.float32, monkeypatch)
+    fp32 = nets_and_grads(True, torch.float32)
     assert max(relative(fused[k], fp32[k]) for k in fp32) < BF16_BOUNDS["gradients"]
 
 
 def test_cpu_line_names_the_cpu_and_its_matrix_instructions(monkeypatch):
     caps = {"cpu_name": "Some Xeon", "amx_bf16": True, "avx512_bf16": False, "avx512_f": True, "avx2": True}
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: caps)
-    line = plumbing.cpu_line()
+    line = speed.cpu_line()
     assert line.startswith("CPU: Some Xeon") and "AMX yes, AVX512-BF16 no, AVX512 yes, AVX2 yes" in line
     caps.update(amx_bf16=False, avx512_bf16=True, avx512_f=False)
-    assert "AMX no, AVX512-BF16 yes, AVX512 no, AVX2 yes" in plumbing.cpu_line()
+    assert "AMX no, AVX512-BF16 yes, AVX512 no, AVX2 yes" in speed.cpu_line()
     caps.update(avx512_bf16=False)
-    assert "fast bf16: False" in plumbing.cpu_line()
+    assert "fast bf16: False" in speed.cpu_line()
 
 
 def test_the_max_over_edges_shares_its_gradient_among_exact_ties_as_amax_does():
@@ -254,7 +254,7 @@ def test_the_max_over_edges_shares_its_gradient_among_exact_ties_as_amax_does():
     edges.view(b, n, n - 1, 8)[::2, :, 1] = edges.view(b, n, n - 1, 8)[::2, :, 0]
     grad = ints(b, n, 4)
     weights = [t.clone().requires_grad_() for t in (w1, b1, w2, b2)]
-    (plumbing.EdgeMax.apply(edges, *weights, n, torch.float32) * grad).sum().backward()
+    (speed.EdgeMax.apply(edges, *weights, n, torch.float32) * grad).sum().backward()
     ref = [t.clone().requires_grad_() for t in (w1, b1, w2, b2)]
     y = F.relu(F.linear(F.relu(F.linear(edges, ref[0], ref[1])), ref[2], ref[3])).view(b, n, n - 1, 4)
     (y.amax(dim=2) * grad).sum().backward()

@@ -1,0 +1,409 @@
+# Docs: docs/speed.md (what each trick bought, measured on which CPU); SPEC §12 (implementation choices).
+"""The training scripts' speed tricks, in one file beside them, as LeanRL keeps its fast SAC beside the plain one.
+
+gangstr_hme.py, lp_baseline.py and vds_baseline.py hold the plain algorithm: their nets as written (MLP,
+node_sum, edge_max) and torch's Adam. Unless --plain, a script's SAC calls fast_update, and its update then
+computes the same losses faster (docs/speed.md has each trick's figure):
+  - fast nets: within an update, the script's node_sum, edge_max and MLP.forward are this file's
+    (fast_nets). On the CPU, kernels with their backward written out (NodeNet, fused_edge_max, Head); with
+    --precision bf16, the large nets' products in bf16. A probe at start (fast_nets_compute) checks that they
+    still compute the script's own losses and gradients: a fork that changed MLP or an aggregation gets the
+    plain nets, said in one line. tests/test_update.py holds them to the plain nets.
+  - Adam's fused step; on the CPU, glibc told to keep the update's freed memory (keep_freed_memory).
+Whatever --plain says, two that change no number: acting through views of the weights that do not require
+grad (weight_view), and a batch sent to a GPU in one pinned copy (to_device). And what the command line and
+the benchmarks ask of the machine: fast_bf16, cpu_line. It imports no training script and knows no goal
+sampler: scripts and plumbing.py -> this file -> fetch5_env, oracle_graph.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import copy
+import ctypes
+import functools
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn as nn
+import torch.nn.functional as F
+
+import fetch5_env
+import oracle_graph as og
+
+
+# ------------------------------------------------------------------------------------------------
+# The update's fast path: what a training script's SAC turns on unless --plain
+# ------------------------------------------------------------------------------------------------
+def fast_update(agent):
+    """The fast path of a training script's SAC `agent`: its losses (agent.compute_losses, eager or --compile's)
+    computed within fast_nets, if the probe finds that they compute the script's own nets (agent.fast_nets
+    says whether); Adam's fused step, one pass per tensor (on the CPU, torch's default is a dozen small ops per
+    tensor: 4x slower); on the CPU, glibc's kept memory."""
+    script = sys.modules[type(agent).__module__]  # the training script whose SAC this is
+    dtype = dict(fp32=torch.float32, bf16=torch.bfloat16)[agent.args.precision]  # the large products'
+    kernels = agent.device.type == "cpu"
+    agent.fast_nets = fast_nets_compute(agent, script, kernels)
+    if agent.fast_nets:
+        losses = agent.compute_losses
+
+        def compute_losses(batch: dict):
+            with fast_nets(script, dtype, kernels):
+                return losses(batch)
+
+        agent.compute_losses = compute_losses
+    fused = lambda opt: torch.optim.Adam(opt.param_groups[0]["params"], lr=opt.defaults["lr"], fused=True)  # noqa: E731
+    agent.actor_opt, agent.critic_opt = fused(agent.actor_opt), fused(agent.critic_opt)
+    if kernels:
+        keep_freed_memory()
+
+
+FAST = dict(dtype=None, kernels=False, own=None)  # within fast_nets: its arguments, and the script's own nets
+
+
+@contextlib.contextmanager
+def fast_nets(script, dtype: torch.dtype, kernels: bool = True):
+    """Within it, the nets of `script` (a training script's module) compute as in a fast SAC update: its
+    node_sum, edge_max and MLP.forward are this file's, the same math. On the CPU, if `kernels`, the kernels
+    below (not while torch.compile traces: --compile fuses the plain ops itself); elsewhere the large nets'
+    products in `dtype` (--precision; sums, heads, losses and targets stay fp32). The script looks these names
+    up at call time: outside this block (acting, evaluation, a goal sampler's own use), its own nets run."""
+    own, before = (script.node_sum, script.edge_max, script.MLP.forward), dict(FAST)
+    FAST.update(dtype=dtype, kernels=kernels, own=own)
+    script.node_sum, script.edge_max, script.MLP.forward = fast_node_sum, fast_edge_max, fast_forward
+    try:
+        yield
+    finally:
+        script.node_sum, script.edge_max, script.MLP.forward = own
+        FAST.update(before)
+
+
+def kernels_here(x: torch.Tensor) -> bool:
+    return FAST["kernels"] and x.is_cpu and not torch.compiler.is_compiling()
+
+
+def fast_node_sum(net, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """The script's node_sum (a node net summed over nodes): on the CPU by NodeNet, else the script's own."""
+    if kernels_here(local):
+        return NodeNet.apply(glob, local, *net.params(), FAST["dtype"])
+    return FAST["own"][0](net, glob, local)
+
+
+def fast_edge_max(net, edges: torch.Tensor, n: int) -> torch.Tensor:
+    """The script's edge_max (a net on every edge, max over each node's): on the CPU by fused_edge_max, else the
+    script's own."""
+    if kernels_here(edges):
+        return fused_edge_max(edges, *net.params(), n, FAST["dtype"])
+    return FAST["own"][1](net, edges, n)
+
+
+def fast_forward(net, x: torch.Tensor) -> torch.Tensor:
+    """The script's MLP.forward: a head (no output ReLU) by Head on the CPU; a large net (run on every edge or
+    node) Linear -> ReLU -> Linear (-> ReLU) with its products in the update's dtype (in fp32, the same ops as
+    the script's); any other net, the script's own."""
+    if kernels_here(x) and not net.out_relu:
+        return Head.apply(x, *net.params())
+    if not net.large:
+        return FAST["own"][2](net, x)
+    x, w1, b1, w2, b2 = (t.to(FAST["dtype"]) for t in (x, *net.params()))
+    x = F.linear(F.relu(F.linear(x, w1, b1)), w2, b2)
+    return F.relu(x) if net.out_relu else x
+
+
+def fast_nets_compute(agent, script, kernels: bool) -> bool:
+    """Whether fast_nets compute `script`'s SAC losses (agent.losses) as its own nets do, on a small batch of
+    random inputs on the agent's device: the losses, TD targets and the gradients of the networks' weights,
+    within fast_nets in fp32 (with the kernels if `kernels`, and without: a GPU's or --compile's path) and
+    outside it, equal up to float rounding. The fast nets implement the scripts' MLP as written (Linear -> ReLU
+    -> Linear (-> ReLU), max over edges, sum over nodes); a fork that changes MLP or an aggregation changes its
+    own nets alone. Then False, said in one line: the update runs the plain nets. Draws from its own generator
+    (the run's random streams are untouched) and changes no weight or gradient."""
+    gen = torch.Generator().manual_seed(0)
+    rows, obs_dim, dim = 16, fetch5_env.obs_size(agent.args.n_blocks), og.config_dim(agent.args.n_blocks)
+    normal = lambda *shape: torch.randn(*shape, generator=gen)  # noqa: E731
+    config = lambda: torch.randint(0, 2, (rows, dim), generator=gen).float() * 2 - 1  # noqa: E731
+    batch = dict(obs=normal(rows, obs_dim), obs_next=normal(rows, obs_dim), ag=config(), ag_next=config(),
+                 g=config(), action=normal(rows, 4).tanh(), reward=torch.randint(0, 2, (rows,), generator=gen).float(),
+                 noise_next=normal(rows, 4), noise_pi=normal(rows, 4))  # fmt: skip
+    batch = {k: v.to(agent.device) for k, v in batch.items()}
+    params = [*agent.actor.parameters(), *agent.critic.parameters()]
+
+    def values(within) -> torch.Tensor | Exception:
+        try:
+            with within:
+                critic_loss, actor_loss, target, _ = agent.losses(batch)
+            grads = torch.autograd.grad(critic_loss + actor_loss, params, allow_unused=True)
+            grads = [target.new_full((1,), math.nan) if g is None else g.reshape(-1) for g in grads]  # unused: nan
+            return torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target, *grads])
+        except Exception as e:  # noqa: BLE001 (a net the fast nets cannot run, of another shape: not theirs)
+            return e
+
+    plain = values(contextlib.nullcontext())
+    fast = [values(fast_nets(script, torch.float32, k)) for k in dict.fromkeys([kernels, False])]
+    same = all(isinstance(v, torch.Tensor) and v.shape == plain.shape for v in [plain, *fast])
+    same = same and all(torch.allclose(v, plain, rtol=1e-4, atol=1e-4, equal_nan=True) for v in fast)
+    if not same and not (dist.is_initialized() and dist.get_rank() > 0):
+        print("fast nets off: speed.py's no longer compute this script's nets (MLP, node_sum or edge_max changed); "
+              "the SAC update runs the plain nets, in fp32", flush=True)  # fmt: skip
+    return same
+
+
+def keep_freed_memory():
+    """Keep the update's freed tensors in this process's heap for the next update (docs/speed.md). By default
+    glibc returns a freed block of a few MB to the system and faults its pages back in, zeroed, on the next
+    allocation: about 1,500 page faults and a tenth of a CPU update's time."""
+    libc = ctypes.CDLL(None) if os.name == "posix" else None
+    if hasattr(libc, "mallopt"):  # glibc: blocks up to 32 MB from the heap, which keeps up to 1 GB free
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 1 << 30)  # M_TRIM_THRESHOLD
+
+
+# ------------------------------------------------------------------------------------------------
+# Whatever --plain says: acting's weight views, a batch's one copy to a GPU (neither changes a number)
+# ------------------------------------------------------------------------------------------------
+def weight_view(module: nn.Module) -> nn.Module:
+    """A copy of `module` whose parameters are views of the original's that do not require grad: it
+    follows every optimizer step and checkpoint load, and spares acting the dispatch cost that torch
+    pays for each op on a tensor that requires grad (even under inference_mode)."""
+    view = copy.copy(module)
+    view._modules = {name: weight_view(child) for name, child in module._modules.items()}
+    view.__dict__.update(view._modules)  # found without nn.Module.__getattr__, which is slow
+    view._parameters = {}
+    for name, p in module._parameters.items():
+        setattr(view, name, None if p is None else p.detach())  # plain tensors: no Parameter subclass either
+    return view
+
+
+def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    """float32 arrays (an update's batch) as tensors on `device` (a speed trick; docs/scaling.md).
+    On CPU, the arrays themselves: no copy. On a GPU, one copy of them all from pinned memory, which the CPU
+    need not wait for: it draws the next batch while the GPU works (it took ten blocking copies, the observations
+    twice, before). Torch's cache of pinned memory reuses the block once its copy is done."""
+    if device.type == "cpu":
+        return {k: torch.from_numpy(v) for k, v in arrays.items()}
+    sizes = [v.size for v in arrays.values()]
+    assert all(v.dtype == np.float32 for v in arrays.values()), {k: v.dtype for k, v in arrays.items()}
+    staging = torch.empty(sum(sizes), dtype=torch.float32, pin_memory=torch.cuda.is_available())
+    np.concatenate([v.ravel() for v in arrays.values()], out=staging.numpy())
+    parts = staging.to(device, non_blocking=True).split(sizes)
+    return {k: t.view(v.shape) for (k, v), t in zip(arrays.items(), parts, strict=True)}
+
+
+# ------------------------------------------------------------------------------------------------
+# Stepping the workers' envs in threads (MuJoCo releases the GIL while it simulates): the same steps
+# ------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def physics_first(n_envs: int):
+    """Within it, torch runs one thread while this process's n_envs envs step in several: torch's idle threads
+    would spin on the cores the envs step on, and acting batches are small (measured: physics 1.7x faster)."""
+    threads = torch.get_num_threads()
+    if physics_threads(n_envs) > 1:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray, n_envs: int = 1):
+    """Every env one step, in up to physics_threads(n_envs) threads (n_envs: this process's, of which `envs`
+    may be fewer); observations written to obs_out and ag_out (K, .)."""
+
+    def step_some(ks):
+        for k in ks:
+            obs = envs[k].step(actions[k])[0]
+            obs_out[k], ag_out[k] = obs["observation"], obs["achieved_goal"]
+
+    threads = physics_threads(n_envs)
+    n = min(len(envs), threads)
+    if n == 1:
+        step_some(range(len(envs)))
+    else:
+        list(physics_pool(threads).map(step_some, [range(i, len(envs), n) for i in range(n)]))
+
+
+@functools.cache
+def physics_threads(n_envs: int) -> int:
+    """Threads that step n_envs envs: one per env, at most this process's share of the node's cores."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(n_envs, cores // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))))
+
+
+@functools.cache
+def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
+
+
+# ------------------------------------------------------------------------------------------------
+# The SAC update's CPU kernels (a speed trick, docs/speed.md: the update 1.06-1.11x that of commit 25d2c6b on
+# an AVX2 CPU, paired): the message and node nets and the heads of the training scripts, the same math, each
+# one autograd node with its backward written out. Products by oneDNN, ReLUs fused into them or applied in
+# place, only the gradients that are needed.
+# ------------------------------------------------------------------------------------------------
+ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+def product(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False):
+    """x (rows, in) times w (out, in) transposed, + bias, ReLU if asked, summed in fp32: oneDNN's linear, which
+    applies the ReLU while the output is still in cache (torch's CPU product goes to MKL, slow on AMD)."""
+    if ONEDNN:
+        return torch.ops.mkldnn._linear_pointwise(x, w, bias, "relu" if relu else "none", [], "")
+    y = F.linear(x, w, bias)
+    return y.relu_() if relu else y
+
+
+def weight_grad(g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """g^T x in fp32: the gradient of a layer's weight, for its output gradient g (rows, out) and input x
+    (rows, in). oneDNN copies a transposed first operand, so the narrower one goes first."""
+    w = product(g.t(), x.t()) if g.shape[1] <= x.shape[1] else product(x.t(), g.t()).t()
+    return w.float().contiguous()
+
+
+def bias_grad(g: torch.Tensor) -> torch.Tensor:
+    return g.sum(0, dtype=torch.float32)
+
+
+def relu_backward_(g: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """g zeroed in place where the ReLU's output y is 0."""
+    return torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
+
+
+def live_rows(grad: torch.Tensor, multiple: int = 32) -> torch.Tensor:
+    """The rows of grad that are not all zero, then zero rows up to a multiple of 32: oneDNN builds a product
+    for each new shape (about 1 ms), so a few shapes, not one per count."""
+    live = grad.any(1)
+    k = min(len(grad), -(-int(live.sum()) // multiple) * multiple)
+    return live.byte().argsort(descending=True, stable=True)[:k]
+
+
+class NodeNet(torch.autograd.Function):
+    """The scripts' node_sum of one Linear -> ReLU -> Linear -> ReLU net. Its backward skips the samples whose
+    gradient is zero: in the actor loss, min(Q1, Q2) sends each sample's gradient to one twin, so each twin
+    back-propagates about half the batch."""
+
+    @staticmethod
+    def forward(ctx, glob, local, w1, b1, w2, b2, dtype):
+        b, n, _ = local.shape
+        x = torch.cat([glob[:, None].expand(-1, n, -1), local], dim=-1).view(b * n, -1).to(dtype)  # [glob, local_i]
+        w1, w2 = w1.to(dtype), w2.to(dtype)
+        h = product(x, w1, b1.to(dtype), relu=True)  # (B n, hidden)
+        y = product(h, w2, b2.to(dtype), relu=True)  # (B n, out)
+        ctx.save_for_backward(x, h, y, w1, w2)
+        ctx.shape = b, n, glob.shape[1]
+        return y.view(b, n, -1).sum(1, dtype=torch.float32)
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, y, w1, w2 = ctx.saved_tensors
+        (b, n, k), need = ctx.shape, ctx.needs_input_grad
+        rows = None if need[2] else live_rows(grad)  # without weight gradients: live samples alone
+        if rows is not None:
+            grad, h, y = grad[rows], *(t.view(b, n, -1)[rows].flatten(0, 1) for t in (h, y))
+        m, hidden, out = len(grad), len(w1), len(w2)  # (sizes spelled out: m may be 0)
+        g = grad.to(w2.dtype)[:, None].expand(m, n, out)  # every node's output gets the sum's gradient
+        g = torch.ops.aten.threshold_backward(g, y.view(m, n, out), 0).view(m * n, out)
+        gh = relu_backward_(product(g, w2.t()), h)  # (B n, hidden)
+        grads = [None] * 7
+        if need[0]:
+            grads[0] = gh.view(m, n, hidden).sum(1, dtype=torch.float32) @ w1[:, :k].float()
+        if need[1]:
+            grads[1] = product(gh, w1[:, k:].t().contiguous()).view(m, n, len(w1[0]) - k).float()
+        if rows is not None:  # zeros for the samples without gradient
+            grads[:2] = [t if t is None else t.new_zeros(b, *t.shape[1:]).index_copy_(0, rows, t) for t in grads[:2]]
+        if need[2]:
+            grads[2:6] = weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g)
+        return tuple(grads)
+
+
+def fused_edge_max(edges, w1, b1, w2, b2, n: int, dtype):
+    """The scripts' edge_max of one Linear -> ReLU -> Linear -> ReLU net. Without gradients (the TD target's),
+    in chunks of 64 samples, so that each chunk's hidden layer is still in cache for its second product."""
+    if torch.is_grad_enabled() and w1.requires_grad:
+        return EdgeMax.apply(edges, w1, b1, w2, b2, n, dtype)
+    return torch.cat([edge_nets(e, w1, b1, w2, b2, n, dtype)[3] for e in edges.split(64)])
+
+
+def edge_nets(edges, w1, b1, w2, b2, n: int, dtype):
+    """The net on every edge (B, E, in), and its max over each node's n - 1 edges: (x, h, y, max)."""
+    x = edges.reshape(-1, edges.shape[-1]).to(dtype)
+    h = product(x, w1.to(dtype), b1.to(dtype), relu=True)  # (B E, hidden)
+    y = product(h, w2.to(dtype), b2.to(dtype), relu=True).view(len(edges), n, n - 1, -1)
+    return x, h, y, y.amax(dim=2)
+
+
+class EdgeMax(torch.autograd.Function):
+    """fused_edge_max with gradients. The max's gradient goes to the edge that gave it (shared among exact ties, as
+    torch's amax does), where the ReLU let it through."""
+
+    @staticmethod
+    def forward(ctx, edges, w1, b1, w2, b2, n, dtype):
+        x, h, y, out = edge_nets(edges, w1, b1, w2, b2, n, dtype)
+        ctx.save_for_backward(x, h, y, out, w2.to(dtype))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, y, out, w2 = ctx.saved_tensors
+        hit = (y == out[:, :, None]) & (y > 0)
+        g = torch.where(hit, grad.to(y.dtype)[:, :, None], 0) / hit.sum(2, keepdim=True).clamp_min_(1)
+        g = g.view(-1, y.shape[-1])  # (B E, out)
+        gh = relu_backward_(product(g, w2.t()), h)
+        return None, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g), None, None
+
+
+class Head(torch.autograd.Function):
+    """A head (Linear -> ReLU -> Linear, fp32, on the node read-out), its products by oneDNN as the kernels
+    above: torch's go to MKL, at half oneDNN's rate on the AMD EPYC with AVX512-BF16 (docs/speed.md)."""
+
+    @staticmethod
+    def forward(ctx, x, w1, b1, w2, b2):
+        h = product(x, w1, b1, relu=True)
+        ctx.save_for_backward(x, h, w1, w2)
+        return product(h, w2, b2)
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, h, w1, w2 = ctx.saved_tensors
+        g = grad.contiguous()
+        gh = relu_backward_(product(g, w2.t()), h)
+        grad_x = product(gh, w1.t()) if ctx.needs_input_grad[0] else None
+        if not ctx.needs_input_grad[1]:  # the actor loss: the critic's heads are constants there
+            return grad_x, None, None, None, None
+        return grad_x, weight_grad(gh, x), bias_grad(gh), weight_grad(g, h), bias_grad(g)
+
+
+# ------------------------------------------------------------------------------------------------
+# The machine: whether bf16 pays here (--precision bf16 is refused where not), the line that names it
+# ------------------------------------------------------------------------------------------------
+def fast_bf16(cuda: bool) -> bool:
+    """Whether --precision bf16 can pay here: this process's GPU has bf16 tensor cores (compute capability 8.0
+    on, or AMD's), or the CPU has bf16 matrix instructions (x86: AMX or AVX512-BF16; ARM: BF16) for oneDNN;
+    without them, bf16 products are emulated."""
+    if cuda:  # not torch.cuda.is_bf16_supported(): it counts emulation (V100, T4) and makes a context on GPU 0
+        gpu = int(os.environ.get("LOCAL_RANK", "0"))  # this process's (torchrun's LOCAL_RANK)
+        return bool(torch.version.hip) or torch.cuda.get_device_capability(gpu) >= (8, 0)
+    caps = torch.cpu.get_capabilities()
+    has_bf16 = any(caps.get(name) for name in ("amx_bf16", "avx512_bf16", "bf16", "sve_bf16"))
+    return torch.backends.mkldnn.is_available() and has_bf16
+
+
+def cpu_line() -> str:
+    """This CPU and its matrix instructions, on the first line of every speed benchmark: each figure names its
+    machine (docs/speed.md). A vague model name ('AMD EPYC' in a VM) gets its family and model numbers."""
+    caps = torch.cpu.get_capabilities()
+    info = Path("/proc/cpuinfo").read_text().split("\n\n")[0] if os.path.exists("/proc/cpuinfo") else ""
+    fields = dict(line.split(":", 1) for line in info.splitlines() if ":" in line)
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    name = caps.get("cpu_name") or fields.get("model name") or "unknown CPU"
+    if "cpu family" in fields:
+        name += f" (family {fields['cpu family']}, model {fields.get('model', '?')})"
+    isa = [f"{label} {'yes' if caps.get(key) else 'no'}" for label, key in
+           (("AMX", "amx_bf16"), ("AVX512-BF16", "avx512_bf16"), ("AVX512", "avx512_f"), ("AVX2", "avx2"))]  # fmt: skip
+    bf16 = fast_bf16(cuda=False)
+    return f"CPU: {name}, {os.cpu_count()} CPUs; {', '.join(isa)}; fast bf16: {bf16}; torch {torch.__version__}"
