@@ -2,11 +2,17 @@
 section a file names exists, and no text points outside the repository or speaks of how the project was made
 (a tracker's numbers, the work behind it) rather than of its commits, versions and sections."""
 
+import dataclasses
 import re
 import subprocess
 from pathlib import Path
 
 import pytest
+
+import gangstr_hme as gh
+import lp_baseline as lp
+import oracle_graph as og
+import vds_baseline as vds
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "docs/SPEC.md"
@@ -122,3 +128,84 @@ def test_the_readme_is_short_and_opens_with_the_two_commands():
         flags=re.MULTILINE,
     )
     assert commands[:2] == ["python gangstr_hme.py --sp-ratio 0.2", "python -m pytest -n 2"]
+
+
+# ------------------------------------------------------------------------------------------------
+# docs/training.md lists every flag and every progress.csv column, each under the scripts that have it
+# ------------------------------------------------------------------------------------------------
+SCRIPTS = {"gangstr_hme.py": gh, "lp_baseline.py": lp, "vds_baseline.py": vds}
+
+
+def training_tables(section: str) -> dict[str, list[list[str]]]:
+    """docs/training.md's `## {section}`: each `### ` heading -> the rows of its table (cells, stripped)."""
+    text = (ROOT / "docs/training.md").read_text()
+    (body,) = re.findall(rf"^## {re.escape(section)}\n(.*?)(?=^## |\Z)", text, flags=re.MULTILINE | re.DOTALL)
+    tables = {}
+    for part in re.split(r"^### ", body, flags=re.MULTILINE)[1:]:
+        heading, _, rest = part.partition("\n")
+        rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in rest.splitlines()
+                if line.startswith("|")]  # fmt: skip
+        tables[heading] = rows[2:]  # the header and its rule left out
+    return tables
+
+
+def listed(cell: str) -> list[str]:
+    """The names a table's first cell lists, each in backticks: "`a`, `b`"."""
+    names = re.findall(r"`([^`]+)`", cell)
+    assert names and ", ".join(f"`{n}`" for n in names) == cell, f"not a list of names: {cell!r}"
+    return names
+
+
+def scripts_named(heading: str) -> set[str]:
+    """The scripts a heading names; none: a flag or column every script has."""
+    return {script for script in SCRIPTS if script in heading} or set(SCRIPTS)
+
+
+def test_training_md_lists_every_flag_of_the_three_scripts_under_the_scripts_that_have_it_with_its_default():
+    fields = {script: {f.name: f for f in dataclasses.fields(module.Args)} for script, module in SCRIPTS.items()}
+    owners = {}  # flag -> the scripts whose Args has it
+    for script, of_script in fields.items():
+        for name in of_script:
+            owners.setdefault("--" + name.replace("_", "-"), set()).add(script)
+    pages, bad = {}, []
+    for heading, rows in training_tables("Every flag").items():
+        for flag, default, *_ in rows:
+            (flag,) = listed(flag)
+            if flag in pages:
+                bad.append(f"{flag} listed twice")
+            pages[flag] = scripts_named(heading)
+            if pages[flag] != owners.get(flag, pages[flag]):
+                bad.append(f"{flag} under '{heading}', but it is a flag of {sorted(owners[flag])}")
+            for script in owners.get(flag, ()):
+                value = fields[script][flag[2:].replace("-", "_")].default
+                if re.fullmatch(r"`[^`]*`", default) and default != f"`{value!r}`":  # as --help prints it
+                    bad.append(f"{flag}: default {default} on the page, {value!r} in {script}")
+    assert not (missing := sorted(set(owners) - set(pages))), f"flags docs/training.md does not list: {missing}"
+    assert not (extra := sorted(set(pages) - set(owners))), f"flags docs/training.md lists that no script has: {extra}"
+    assert not bad, bad
+
+
+TINY_RUN = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
+            "--batch-size", "16", "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1",
+            "--threads", "1"]  # fmt: skip
+EVERY_COLUMN = {  # flags that make a script write every column it has (a person who never answers: the oracle draws)
+    "gangstr_hme.py": "--sp-ratio 0.5 --ask-after 1 --partner person --person-port 0 --person-timeout 0.05".split(),
+    "lp_baseline.py": [],
+    "vds_baseline.py": [],
+}
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_training_md_lists_every_progress_csv_column_a_tiny_run_writes(script, tmp_path):
+    assert SCRIPTS[script].main([*TINY_RUN, *EVERY_COLUMN[script], "--runs-dir", str(tmp_path)]) == 0
+    (run,) = tmp_path.iterdir()
+    written = (run / "progress.csv").read_text().splitlines()[0].split(",")
+    classes = "|".join(re.escape(k) for k in [*og.evaluation_classes(5), "other"])
+    documented = [name for heading, rows in training_tables("Every progress.csv column").items()
+                  if script in scripts_named(heading) for row in rows for name in listed(row[0])]  # fmt: skip
+    patterns = {name: re.compile(re.escape(name).replace(re.escape("<class>"), f"(?:{classes})"))
+                for name in documented}  # fmt: skip
+    undocumented = [c for c in written if not any(p.fullmatch(c) for p in patterns.values())]
+    unwritten = [name for name, p in patterns.items() if not any(p.fullmatch(c) for c in written)]
+    assert not undocumented, f"{script} writes columns docs/training.md does not list for it: {undocumented}"
+    assert not unwritten, f"docs/training.md lists columns {script} does not write: {unwritten}"
