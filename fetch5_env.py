@@ -36,7 +36,7 @@ import oracle_graph as og
 ENV_VERSION = 3
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "fetch_manipulate.xml"
 N_SUBSTEPS = 20  # 20 x 0.002 s physics steps per control step (SPEC §3)
-MAX_EPISODE_STEPS = 40  # one segment (SPEC §5)
+MAX_EPISODE_STEPS = 40  # one segment (SPEC §3)
 ACTION_SCALE = 0.05  # metres of mocap displacement per unit action (Fetch's pos_ctrl *= 0.05)
 GRIP_OFFSET = 0.02  # grip site, along the gripper's pointing axis (local +x)
 # The arm's reach, as a box the mocap target is clipped to (SPEC §3): never binding above the table,

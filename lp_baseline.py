@@ -54,7 +54,7 @@ class Args:
     """outcomes a bucket needs before its learning progress counts"""
     lp_uniform_prob: float = 0.1
     """probability of choosing the bucket uniformly instead of by learning progress"""
-    # --- schedule (SPEC §5) ---
+    # --- schedule (SPEC §12) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
     n_cycles: int = 50
@@ -114,7 +114,7 @@ class Args:
     """with --eval-only: write an mp4 per class of its first --video-episodes evaluation episodes"""
     video_episodes: int = 3
     """evaluation episodes per class filmed by --capture-video"""
-    # --- run and hardware (SPEC §10, §11) ---
+    # --- run and hardware (SPEC §10-§12) ---
     num_envs: int = 1
     """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0

@@ -145,7 +145,7 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
-    n = a.n_blocks  # replay: float32 observations, int8 configs, float32 actions (SPEC §5)
+    n = a.n_blocks  # replay bytes: float32 observations and actions, int8 configs; SPEC §12's memory limit
     replay_bytes = a.num_envs * a.buffer_size * (4 * fetch5_env.obs_size(n) + og.config_dim(n) + 16)
     if replay_bytes > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"):
         return (f"--buffer-size {a.buffer_size} x --num-envs {a.num_envs} needs {replay_bytes / 2**30:.1f} GiB, more "

@@ -55,7 +55,7 @@ class Args:
     """candidate goals drawn from the agent's graph before each goal"""
     vds_temperature: float = 1.0
     """softmax temperature on the disagreement scores (lower: greedier)"""
-    # --- schedule (SPEC §5) ---
+    # --- schedule (SPEC §12) ---
     n_epochs: int = 100
     """number of epochs (one epoch = n-cycles cycles, then an evaluation)"""
     n_cycles: int = 50
@@ -115,7 +115,7 @@ class Args:
     """with --eval-only: write an mp4 per class of its first --video-episodes evaluation episodes"""
     video_episodes: int = 3
     """evaluation episodes per class filmed by --capture-video"""
-    # --- run and hardware (SPEC §10, §11) ---
+    # --- run and hardware (SPEC §10-§12) ---
     num_envs: int = 1
     """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0

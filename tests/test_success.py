@@ -1,4 +1,4 @@
-"""Success is defined once (fetch5_env.goal_reached, SPEC §3): the env's reward, step's is_success, the
+"""Success is defined once (fetch5_env.goal_reached, SPEC §2): the env's reward, step's is_success, the
 HER reward of every training script and a segment's success agree on random configs."""
 
 import ast
