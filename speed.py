@@ -10,9 +10,10 @@ computes the same losses faster (docs/speed.md has each trick's figure):
     still compute the script's own losses and gradients: a fork that changed MLP or an aggregation gets the
     plain nets, said in one line. tests/test_update.py holds them to the plain nets.
   - Adam's fused step; on the CPU, glibc told to keep the update's freed memory (keep_freed_memory).
-Whatever --plain says, two that change no number: acting through views of the weights that do not require
-grad (weight_view), and a batch sent to a GPU in one pinned copy (to_device). And what the command line and
-the benchmarks ask of the machine: fast_bf16, cpu_line. It imports no training script and knows no goal
+Whatever --plain says, three that change no number: acting through views of the weights that do not
+require grad (weight_view), a batch sent to a GPU in one pinned copy (to_device), and the envs stepped in
+threads (step_envs, physics_first). And what the command line and the benchmarks ask of the machine:
+fast_bf16, cpu_line. It imports no training script and knows no goal
 sampler: scripts and plumbing.py -> this file -> fetch5_env, oracle_graph.
 """
 
@@ -85,6 +86,7 @@ def fast_nets(script, dtype: torch.dtype, kernels: bool = True):
 
 
 def kernels_here(x: torch.Tensor) -> bool:
+    """Whether the CPU kernels compute the net that x goes through: within fast_nets with kernels, on the CPU."""
     return FAST["kernels"] and x.is_cpu and not torch.compiler.is_compiling()
 
 
@@ -170,7 +172,8 @@ def keep_freed_memory():
 def weight_view(module: nn.Module) -> nn.Module:
     """A copy of `module` whose parameters are views of the original's that do not require grad: it
     follows every optimizer step and checkpoint load, and spares acting the dispatch cost that torch
-    pays for each op on a tensor that requires grad (even under inference_mode)."""
+    pays for each op on a tensor that requires grad (even under inference_mode). The actor loss reads the
+    critic's weights through one as constants (SAC.losses)."""
     view = copy.copy(module)
     view._modules = {name: weight_view(child) for name, child in module._modules.items()}
     view.__dict__.update(view._modules)  # found without nn.Module.__getattr__, which is slow
