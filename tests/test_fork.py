@@ -1,14 +1,22 @@
 """What a fork of a training script may change without silently breaking the run: a goal sampler that spends
 too few or too many of a cycle's segments is stopped at once, naming itself and the worker (Sampler's
 contract); a changed MLP takes the update off speed.py's fast nets, which implement the nets as written;
---plain turns every speed trick off."""
+--plain turns every speed trick off. The README's example sampler, forked as the README says, trains and
+resumes."""
 
+import csv
 import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from test_baselines import BANNER, GOAL_SAMPLER
 
 import gangstr_hme as gh
 import lp_baseline as lp
@@ -17,6 +25,7 @@ import plumbing
 import speed
 import vds_baseline as vds
 
+ROOT = Path(__file__).resolve().parent.parent
 N = 3
 SCRIPTS = [gh, lp, vds]
 
@@ -177,3 +186,56 @@ def test_plain_refuses_the_speed_flags_in_one_line(monkeypatch, capsys, flags, n
         plumbing.parse_args(gh.Args, gh.check_sampler_args, ["--plain", *flags])
     err = capsys.readouterr().err
     assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and "--plain" in err and named in err
+
+
+# ------------------------------------------------------------------------------------------------
+# The README's fork: its example sampler in a copy of gangstr_hme.py trains, checkpoints and resumes
+# ------------------------------------------------------------------------------------------------
+def readme_fork() -> str:
+    """gangstr_hme.py forked as the README's "Forking a goal sampler" says: the Args group `# --- the goal
+    sampler` replaced with the fork's options (the example has none) and the section "The goal sampler"
+    with the README's example (found as test_baselines finds a baseline's sampler)."""
+    readme = (ROOT / "README.md").read_text()
+    (section,) = re.findall(r"^## Forking a goal sampler.*?(?=^## )", readme, flags=re.MULTILINE | re.DOTALL)
+    (example,) = re.findall(r"^```python\n(.*?)^```", section, flags=re.MULTILINE | re.DOTALL)
+    text = (ROOT / "gangstr_hme.py").read_text()
+    ours = [
+        "    # --- the goal sampler: uniform over the oracle's configs ---\n",
+        f"{BANNER}# The goal sampler: uniform over the oracle's configs\n{BANNER}{example}\n\n",
+    ]
+    for pattern, replacement in zip(GOAL_SAMPLER[1:], ours, strict=True):
+        text, n = re.subn(pattern, lambda _, r=replacement: r, text, flags=re.MULTILINE)
+        assert n == 1, f"{pattern!r} matched {n} times"
+    return text
+
+
+FORK_RUN = ["--n-blocks", "3", "--n-epochs", "2", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
+            "--batch-size", "16", "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1",
+            "--threads", "1"]  # fmt: skip
+TIMINGS = ("time_collect", "time_update", "time_eval", "time_plan_and_graph", "steps_per_second")
+
+
+def test_the_readmes_example_sampler_forked_into_gangstr_hme_trains_checkpoints_and_resumes(tmp_path):
+    fork = tmp_path / "uniform_sampler.py"
+    fork.write_text(readme_fork())
+    assert "class SocialPartner" not in fork.read_text() and "def autotelic_goal" in fork.read_text()
+    env = os.environ | {"PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+    def run(*flags):
+        cmd = [sys.executable, str(fork), *flags, "--runs-dir", str(tmp_path / "runs")]
+        out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+
+    run(*FORK_RUN)
+    (folder,) = (tmp_path / "runs").iterdir()
+    assert folder.name.startswith("uniform_sampler__")
+    first = list(csv.DictReader((folder / "progress.csv").open()))
+    run("--resume", str(folder / "checkpoint.pt"), "--n-epochs", "3")
+    rows = list(csv.DictReader((folder / "progress.csv").open()))
+    assert [r["epoch"] for r in rows] == ["0", "1", "2"]
+    assert [{k: v for k, v in r.items() if k not in TIMINGS} for r in rows[:2]] == [
+        {k: v for k, v in r.items() if k not in TIMINGS} for r in first
+    ]  # the resumed run keeps the rows it had, and goes on from them
+    steps = [int(r["env_steps"]) for r in rows]
+    assert steps == [48, 96, 144]  # 2 cycles x 3 segments x 8 steps an epoch
+    assert "autotelic_goals_reached" in rows[0] and "social_share" not in rows[0]  # the fork's sampler logged
