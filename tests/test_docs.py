@@ -8,6 +8,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from test_baselines import TINY
 
 import gangstr_hme as gh
 import lp_baseline as lp
@@ -185,9 +186,6 @@ def test_training_md_lists_every_flag_of_the_three_scripts_under_the_scripts_tha
     assert not bad, bad
 
 
-TINY_RUN = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
-            "--batch-size", "16", "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1",
-            "--threads", "1"]  # fmt: skip
 EVERY_COLUMN = {  # flags that make a script write every column it has (a person who never answers: the oracle draws)
     "gangstr_hme.py": "--sp-ratio 0.5 --ask-after 1 --partner person --person-port 0 --person-timeout 0.05".split(),
     "lp_baseline.py": [],
@@ -197,7 +195,7 @@ EVERY_COLUMN = {  # flags that make a script write every column it has (a person
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_training_md_lists_every_progress_csv_column_a_tiny_run_writes(script, tmp_path):
-    assert SCRIPTS[script].main([*TINY_RUN, *EVERY_COLUMN[script], "--runs-dir", str(tmp_path)]) == 0
+    assert SCRIPTS[script].main([*TINY, "--n-blocks", "3", *EVERY_COLUMN[script], "--runs-dir", str(tmp_path)]) == 0
     (run,) = tmp_path.iterdir()
     written = (run / "progress.csv").read_text().splitlines()[0].split(",")
     classes = "|".join(re.escape(k) for k in [*og.evaluation_classes(5), "other"])

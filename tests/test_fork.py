@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from test_baselines import BANNER, GOAL_SAMPLER
+from test_baselines import BANNER, GOAL_SAMPLER, TINY
 
 import gangstr_hme as gh
 import lp_baseline as lp
@@ -209,9 +209,6 @@ def readme_fork() -> str:
     return text
 
 
-FORK_RUN = ["--n-blocks", "3", "--n-epochs", "2", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2",
-            "--batch-size", "16", "--segment-len", "8", "--stable-steps", "3", "--eval-goals-per-class", "1",
-            "--threads", "1"]  # fmt: skip
 TIMINGS = ("time_collect", "time_update", "time_eval", "time_plan_and_graph", "steps_per_second")
 
 
@@ -226,7 +223,7 @@ def test_the_readmes_example_sampler_forked_into_gangstr_hme_trains_checkpoints_
         out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
 
-    run(*FORK_RUN)
+    run(*TINY, "--n-blocks", "3", "--n-epochs", "2")
     (folder,) = (tmp_path / "runs").iterdir()
     assert folder.name.startswith("uniform_sampler__")
     first = list(csv.DictReader((folder / "progress.csv").open()))
@@ -237,5 +234,5 @@ def test_the_readmes_example_sampler_forked_into_gangstr_hme_trains_checkpoints_
         {k: v for k, v in r.items() if k not in TIMINGS} for r in first
     ]  # the resumed run keeps the rows it had, and goes on from them
     steps = [int(r["env_steps"]) for r in rows]
-    assert steps == [48, 96, 144]  # 2 cycles x 3 segments x 8 steps an epoch
+    assert steps == [64, 128, 192]  # 2 cycles x 4 segments x 8 steps an epoch (TINY)
     assert "autotelic_goals_reached" in rows[0] and "social_share" not in rows[0]  # the fork's sampler logged
