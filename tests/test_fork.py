@@ -2,7 +2,7 @@
 too few or too many of a cycle's segments is stopped at once, naming itself and the worker (Sampler's
 contract); a changed MLP takes the update off speed.py's fast nets, which implement the nets as written;
 --plain turns every speed trick off. The README's example sampler, forked as the README says, trains and
-resumes."""
+resumes, and the README names every hook of Sampler."""
 
 import csv
 import math
@@ -236,3 +236,12 @@ def test_the_readmes_example_sampler_forked_into_gangstr_hme_trains_checkpoints_
     steps = [int(r["env_steps"]) for r in rows]
     assert steps == [64, 128, 192]  # 2 cycles x 4 segments x 8 steps an epoch (TINY)
     assert "autotelic_goals_reached" in rows[0] and "social_share" not in rows[0]  # the fork's sampler logged
+
+
+def test_the_readmes_fork_section_names_every_hook_of_sampler():
+    readme = (ROOT / "README.md").read_text()
+    (section,) = re.findall(r"^## Forking a goal sampler.*?(?=^## )", readme, flags=re.MULTILINE | re.DOTALL)
+    hooks = [name for name, f in vars(gh.Sampler).items() if callable(f) and not name.startswith("_")]
+    assert "goal_outcome" in hooks and "after_update" in hooks
+    left_out = [h for h in hooks if not re.search(rf"(?:`|`Sampler\.|def ){h}\b", section)]  # in text or the example
+    assert not left_out, f"hooks of Sampler the README does not name: {left_out}"
