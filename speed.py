@@ -121,8 +121,9 @@ def fast_forward(net, x: torch.Tensor) -> torch.Tensor:
 def fast_nets_compute(agent, script, kernels: bool) -> bool:
     """Whether fast_nets compute `script`'s SAC losses (agent.losses) as its own nets do, on a small batch of
     random inputs on the agent's device: the losses, TD targets and the gradients of the networks' weights,
-    within fast_nets in fp32 (with the kernels if `kernels`, and without: a GPU's or --compile's path) and
-    outside it, equal up to float rounding. The fast nets implement the scripts' MLP as written (Linear -> ReLU
+    within fast_nets in fp32 (with the kernels if `kernels`, which stand in for every net the products path
+    runs, so that they answer for --compile's too; without them, a GPU's path) and outside it, equal up to
+    float rounding. The fast nets implement the scripts' MLP as written (Linear -> ReLU
     -> Linear (-> ReLU), max over edges, sum over nodes); a fork that changes MLP or an aggregation changes its
     own nets alone. Then False, said in one line: the update runs the plain nets. Draws from its own generator
     (the run's random streams are untouched) and changes no weight or gradient."""
@@ -146,10 +147,9 @@ def fast_nets_compute(agent, script, kernels: bool) -> bool:
         except Exception as e:  # noqa: BLE001 (a net the fast nets cannot run, of another shape: not theirs)
             return e
 
-    plain = values(contextlib.nullcontext())
-    fast = [values(fast_nets(script, torch.float32, k)) for k in dict.fromkeys([kernels, False])]
-    same = all(isinstance(v, torch.Tensor) and v.shape == plain.shape for v in [plain, *fast])
-    same = same and all(torch.allclose(v, plain, rtol=1e-4, atol=1e-4, equal_nan=True) for v in fast)
+    plain, fast = values(contextlib.nullcontext()), values(fast_nets(script, torch.float32, kernels))
+    same = isinstance(plain, torch.Tensor) and isinstance(fast, torch.Tensor) and fast.shape == plain.shape
+    same = same and torch.allclose(fast, plain, rtol=1e-4, atol=1e-4, equal_nan=True)
     if not same and not (dist.is_initialized() and dist.get_rank() > 0):
         print("fast nets off: speed.py's no longer compute this script's nets (MLP, node_sum or edge_max changed); "
               "the SAC update runs the plain nets, in fp32", flush=True)  # fmt: skip
