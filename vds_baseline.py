@@ -108,7 +108,7 @@ class Args:
     eval_only: bool = False
     """evaluate the --checkpoint (SR per class, printed and saved beside it) and exit; no training"""
     checkpoint: str = ""
-    """checkpoint to evaluate with --eval-only"""
+    """checkpoint to evaluate with --eval-only (paper: the authors' agent, fetched once into a cache)"""
     plan_on: str = "agent"
     """with --eval-only: plan sub-goals on the 'agent' graph (SPEC §9) or the 'oracle' graph (its shortest paths)"""
     capture_video: bool = False
@@ -131,7 +131,7 @@ class Args:
     resume: str = ""
     """checkpoint to resume from (its run folder is continued)"""
     init_from: str = ""
-    """start a new run from this file's networks and normalizer (a checkpoint, or the paper's agent); rest fresh"""
+    """start a new run from this file's networks and normalizer (a checkpoint; paper: the authors' agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     freeze_normalizer: bool = False
