@@ -96,10 +96,20 @@ def parse_args(Args: type, check_sampler_args, argv=None):
     """The script's Args from the command line, or exit 2 with one line naming the first bad value."""
     parser = make_parser(Args)
     args = Args(**vars(parser.parse_args(argv)))
-    problem = check_args(args, check_sampler_args)
+    problem = check_args(args, check_sampler_args) or check_init_flags(args, given_flags(Args, argv))
     if problem:
         parser.error(problem)  # exit code 2, the message names the value
     return args
+
+
+def check_init_flags(a, given: set[str]) -> str | None:
+    """The flags that shape a run started from a trained agent (--init-prior-count, --init-warmup,
+    --init-learning-starts) do nothing without --init-from: given without it (a resume keeps its own), refused."""
+    stray = sorted(f for f in given if f.startswith("init_") and f != "init_from")
+    if stray and not (a.init_from or a.resume):
+        flag = f"--{stray[0].replace('_', '-')} {getattr(a, stray[0])}"
+        return f"{flag} does nothing without --init-from (a run started from a trained agent)"
+    return None
 
 
 def given_flags(Args: type, argv=None) -> set[str]:
@@ -120,7 +130,7 @@ def check_args(a, check_sampler_args) -> str | None:
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes"):
+    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):

@@ -134,6 +134,10 @@ class Args:
     """start a new run from this file's networks and normalizer (a checkpoint; paper: the authors' agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
+    init_warmup: int = 0
+    """with --init-from: SAC updates over which both learning rates rise linearly from 0 to theirs"""
+    init_learning_starts: int = 0
+    """with --init-from: segments each worker's replay holds before the first SAC update"""
     freeze_normalizer: bool = False
     """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md)"""
     save_buffer: bool = True
@@ -420,6 +424,11 @@ class SAC:
 
     def update(self, np_batch: dict) -> dict:
         batch = self.to_tensors(np_batch)
+        if self.args.init_from and self.n_updates < self.args.init_warmup:  # --init-warmup (0: none)
+            scale = (self.n_updates + 1) / self.args.init_warmup
+            for opt, lr in ((self.actor_opt, self.args.lr_actor), (self.critic_opt, self.args.lr_critic)):
+                for group in opt.param_groups:
+                    group["lr"] = lr * scale
         critic_loss, actor_loss, target, stats = self.compute_losses(batch)
         self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
         self.actor_opt.zero_grad()
@@ -1094,7 +1103,8 @@ class Learner:
         workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
         args, infos = self.args, []
         her_prob = 1 - 1 / (1 + args.her_k)
-        for _ in range(args.n_updates if self.buffer.size else 0):
+        starts = max(1, args.init_learning_starts if args.init_from else 1)  # --init-learning-starts
+        for _ in range(args.n_updates if self.buffer.size >= starts else 0):
             info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
         return plumbing.update_means(infos)  # one wait for the GPU a cycle, not one an update

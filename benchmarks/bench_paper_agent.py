@@ -1,8 +1,8 @@
-"""The paper's trained agent in this environment, as a MuJoCo or Gymnasium release is judged by: its SR per
-class by `gangstr_hme.py --eval-only` (the same command, run in this process; its JSON is written beside a
-copy of the file), pooled over seeds, and the share of block-steps during those evaluations with a block on
-its side (|roll| or |pitch| over bench_grasp's TIP_ANGLE). Run it in one virtual environment per release,
-on the same seeds: the goals and the draws are the same, only the physics differs.
+"""The paper's trained agent (or a checkpoint of ours) in this environment, as a MuJoCo or Gymnasium release is
+judged by: its SR per class by `gangstr_hme.py --eval-only` (the same command, run in this process; its JSON is
+written beside a copy of the file), pooled over seeds, and the share of block-steps during those evaluations
+with a block on its side (|roll| or |pitch| over bench_grasp's TIP_ANGLE). Run it in one virtual environment
+per release, on the same seeds: the goals and the draws are the same, only the physics differs.
 
     python benchmarks/bench_paper_agent.py --checkpoint paper [--seeds 1 2 3] [--goals 60]
         [--plan-on oracle] [--out results.json]
@@ -76,8 +76,9 @@ def main():
     pooled["global"] = float(np.mean([pooled[k] for k in classes]))
     print(speed.cpu_line())
     print("versions: " + ", ".join(f"{k} {v}" for k, v in plumbing.library_versions().items()))
-    print(f"the paper's agent, sub-goals planned on the {ns.plan_on}'s graph, seeds {ns.seeds} x {ns.goals} goals "
-          "per class, pooled:")  # fmt: skip
+    who = "the paper's agent" if ns.checkpoint == "paper" else ns.checkpoint
+    print(f"{who}, sub-goals planned on the {ns.plan_on}'s graph, seeds {ns.seeds} x {ns.goals} goals per class, "
+          "pooled:")  # fmt: skip
     print("  " + " ".join(f"{k} {pooled[k]:.3f}" for k in classes) + f" | global {pooled['global']:.3f}")
     share = counts["tipped"] / max(1, counts["block_steps"])
     print(f"  blocks on their side: {share:.2%} of {counts['block_steps']:,} block-steps; "

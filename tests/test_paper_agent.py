@@ -30,6 +30,9 @@ ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16", "--segment-len", "10",
         "--stable-steps", "3", "--eval-goals-per-class", "1", "--threads", "1", "--sp-ratio", "0.3"]  # fmt: skip
 TIMING = ("time_", "steps_per_second")
+# A command line that runs for seconds: a bad flag that a check lets through shows as a run, not an hour's wait.
+BRIEF = ["--n-epochs", "1", "--n-cycles", "1", "--n-segments", "1", "--n-updates", "1", "--batch-size", "16",
+         "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
 
 
 def run_script(*args, runs_dir, timeout=180):
@@ -221,13 +224,18 @@ def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path
         (["--init-from", "{paper}", "--init-prior-count", "0"], "--init-prior-count must be at least 1, got 0"),
         (["--eval-only", "--checkpoint", "{paper}", "--plan-on", "partner"], "--plan-on must be 'agent' or 'oracle'"),
         (["--plan-on", "oracle"], "--plan-on 'oracle' plans an --eval-only evaluation"),
+        (["--init-from", "{paper}", "--init-warmup", "-1"], "--init-warmup must be non-negative, got -1"),
+        (["--init-from", "{paper}", "--init-learning-starts", "-3"], "--init-learning-starts must be non-negative"),
+        (["--init-warmup", "100"], "--init-warmup 100 does nothing without --init-from"),
+        (["--init-learning-starts", "0"], "--init-learning-starts 0 does nothing without --init-from"),
+        (["--eval-only", "--checkpoint", "{paper}", "--init-prior-count", "9"], "--init-prior-count 9 does nothing"),
     ],
 )
 def test_bad_uses_of_the_new_flags_exit_2_with_one_line_naming_them(tmp_path, argv, says, capsys):
     write_paper_file(tmp_path / "gangstr.pt", our_agent(5))
     argv = [a.format(paper=tmp_path / "gangstr.pt") for a in argv]
     with pytest.raises(SystemExit) as e:
-        gh.main([*argv, "--threads", "1", "--runs-dir", str(tmp_path / "runs")])
+        gh.main([*argv, *BRIEF, "--runs-dir", str(tmp_path / "runs")])
     err = capsys.readouterr().err
     assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
     assert says in err and not (tmp_path / "runs").exists()
@@ -357,7 +365,97 @@ def test_our_own_checkpoint_can_be_evaluated_on_the_oracle_graph_too(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# 4. `paper`: the authors' file fetched on request into a cache, here from a server on 127.0.0.1
+# 4. Fine-tuning: the first updates after --init-from (--init-warmup, --init-learning-starts)
+# ------------------------------------------------------------------------------------------------
+def learner_with_segments(n_segments: int, **args) -> gh.Learner:
+    """A 3-block learner (CPU, fixed seed) whose replay holds n_segments random segments."""
+    torch.manual_seed(0)
+    learner = gh.Learner(gh.Args(n_blocks=3, buffer_size=400, batch_size=8, segment_len=10, **args), "cpu")
+    rng, dim = np.random.default_rng(0), og.config_dim(3)
+    learner.buffer.store(rng.normal(size=(1, n_segments, 11, 55)).astype(np.float32),
+                         rng.choice([-1, 1], size=(1, n_segments, 11, dim)).astype(np.int8),
+                         rng.choice([-1, 1], size=(1, n_segments, dim)).astype(np.int8),
+                         rng.uniform(-1, 1, size=(1, n_segments, 10, 4)).astype(np.float32))  # fmt: skip
+    return learner
+
+
+def learning_rates(learner: gh.Learner, updates: int) -> list[tuple[float, float]]:
+    """(actor's, critic's) learning rate each of `updates` SAC updates stepped with."""
+    rates, rng = [], [np.random.default_rng(1)]
+    for _ in range(updates):
+        learner.agent.update(learner.buffer.sample(8, rng, 0.8, "final"))
+        rates.append((learner.agent.actor_opt.param_groups[0]["lr"], learner.agent.critic_opt.param_groups[0]["lr"]))
+    return rates
+
+
+def test_after_init_from_both_learning_rates_rise_linearly_over_init_warmup_updates_then_stay():
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_warmup=4, lr_actor=1e-3, lr_critic=2e-3)
+    want = [(1e-3 * k / 4, 2e-3 * k / 4) for k in (1, 2, 3, 4)] + [(1e-3, 2e-3)] * 3
+    assert learning_rates(learner, 7) == pytest.approx(want, rel=1e-12)
+    learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4  # a fork's own schedule after the warm-up is its own
+    assert learning_rates(learner, 1) == [(5e-4, 2e-3)]
+
+
+def test_without_init_from_the_learning_rates_are_never_touched():
+    learner = learner_with_segments(4, init_warmup=4, init_learning_starts=50)  # ignored without --init-from
+    learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4
+    assert learning_rates(learner, 3) == [(5e-4, 1e-3)] * 3
+    assert learner.train([np.random.default_rng(2)])  # updates at once: the replay holds a segment
+
+
+def test_after_init_from_no_update_runs_until_the_replay_holds_init_learning_starts_segments():
+    learner = learner_with_segments(3, init_from="gangstr.pt", init_learning_starts=5, n_updates=2)
+    assert learner.train([np.random.default_rng(2)]) == {} and learner.agent.n_updates == 0
+    learner.buffer.store(*(getattr(learner.buffer, k)[:, :2] for k in ("obs", "ag", "g", "actions")))
+    assert learner.train([np.random.default_rng(2)]) and learner.agent.n_updates == 2  # 5 segments: it learns
+
+
+def test_a_run_resumed_during_the_warmup_reproduces_the_uninterrupted_run(tmp_path):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
+    # the first cycle (3 segments) waits for the replay; then 2 updates a cycle: 6 by epoch 2, of a warm-up of 8
+    start = ["--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--init-warmup", "8", "--init-learning-starts", "4"]
+    assert run_script(*start, "--n-epochs", "2", runs_dir=tmp_path / "a").returncode == 0
+    assert run_script(*start, "--n-epochs", "1", runs_dir=tmp_path / "b").returncode == 0
+    (run_a,), (run_b,) = (tmp_path / "a").iterdir(), (tmp_path / "b").iterdir()
+    state = torch.load(run_b / "checkpoint.pt", weights_only=True)
+    assert state["counters"]["n_updates"] == 2  # 2 of the warm-up's 8 updates, the second at 2/8 of the rate
+    assert state["actor_opt"]["param_groups"][0]["lr"] == pytest.approx(1e-3 * 2 / 8)
+    out = run_script("--resume", str(run_b / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
+    assert out.returncode == 0, out.stderr
+    rows = read_rows(run_a)
+    assert len(rows) == 2 and read_rows(run_b) == rows
+    assert torch.load(run_a / "checkpoint.pt", weights_only=True)["counters"]["n_updates"] == 6
+
+
+# The last commit before --init-warmup and --init-learning-starts: a run without --init-from must compute
+# exactly what it computed there.
+BEFORE_FINE_TUNING = "54795e0"
+
+
+@pytest.mark.parametrize("script, flags", [("gangstr_hme.py", ["--sp-ratio", "0.3"]), ("lp_baseline.py", []),
+                                           ("vds_baseline.py", [])])  # fmt: skip
+def test_a_run_without_init_from_computes_what_it_did_before_the_fine_tuning_flags(tmp_path, script, flags):
+    if not (ROOT / ".git").exists():
+        pytest.skip("needs the project's git history (a clone)")
+    before = tmp_path / "before"
+    before.mkdir()
+    tar = subprocess.run(["git", "archive", BEFORE_FINE_TUNING, "--", ".", ":!results", ":!tests"], cwd=ROOT,
+                         capture_output=True, check=True).stdout  # fmt: skip
+    subprocess.run(["tar", "-x", "-C", str(before)], input=tar, check=True)
+    tiny = [*TINY[: TINY.index("--sp-ratio")], *flags, "--n-epochs", "2", "--seed", "3"]
+    rows = []
+    for code in (before, ROOT):
+        cmd = [sys.executable, script, *tiny, "--runs-dir", str(tmp_path / ("old" if code == before else "new"))]
+        out = subprocess.run(cmd, cwd=code, capture_output=True, text=True, timeout=180)
+        assert out.returncode == 0, out.stderr
+        (run,) = (tmp_path / ("old" if code == before else "new")).iterdir()
+        rows.append(read_rows(run))
+    assert len(rows[0]) == 2 and rows[1] == rows[0]
+    assert all(r["critic_loss"] != "nan" for r in rows[0])  # it learned
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. `paper`: the authors' file fetched on request into a cache, here from a server on 127.0.0.1
 # ------------------------------------------------------------------------------------------------
 @pytest.fixture
 def served(tmp_path, monkeypatch):
