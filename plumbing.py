@@ -130,7 +130,8 @@ def check_args(a, check_sampler_args) -> str | None:
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts"):
+    for name in ("n_updates", "her_k", "threads", "video_episodes",
+                 "init_batch", "init_warmup", "init_learning_starts"):  # fmt: skip
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
@@ -988,7 +989,10 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
             return None, None, None
     elif args.init_from:
         init = load_checkpoint(Args, args.init_from, "--init-from")
-        args = args_with_blocks_of(args, given_flags(Args, argv), init, args.init_from, "--init-from")
+        given = given_flags(Args, argv)
+        args = args_with_blocks_of(args, given, init, args.init_from, "--init-from")
+        if "freeze_normalizer" not in given:  # fine-tuning keeps the file's statistics (--no-freeze-normalizer: not)
+            args = dataclasses.replace(args, freeze_normalizer=True)
     if args.capture_video and (why := rendering_problem()):  # every worker: all leave together
         print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
               "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip

@@ -134,12 +134,19 @@ class Args:
     """start a new run from this file's networks and normalizer (a checkpoint; paper: the authors' agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
-    init_warmup: int = 0
-    """with --init-from: SAC updates over which both learning rates rise linearly from 0 to theirs"""
+    init_batch: int = 6144
+    """with --init-from: the batch the file's agent learned with (the paper's: 24 workers x 256); Adam's square-root
+    rule scales the learning rates by sqrt(this run's batch / it), one worker's by 0.2: it kept the paper's agent,
+    which the unscaled rates took from 0.72 to 0.48 (docs/results.md, "Continuing the paper's training"); 0: unscaled"""
+    init_warmup: int = 2000
+    """with --init-from: SAC updates over which both learning rates rise linearly from 0 (a fresh Adam's first steps
+    move every weight by about lr, a trained network's too; 2,000 = 2 / (1 - beta2), the untuned warm-up of Ma and
+    Yarats 2021); 0: none"""
     init_learning_starts: int = 0
-    """with --init-from: segments each worker's replay holds before the first SAC update"""
+    """with --init-from: segments each worker's replay holds before the first SAC update (0: measured no better)"""
     freeze_normalizer: bool = False
-    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md)"""
+    """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md); with
+    --init-from it is on unless --no-freeze-normalizer: updating them lost the paper's agent (docs/results.md)"""
     save_buffer: bool = True
     """put the replay buffer in checkpoints (needed for an exact resume)"""
     runs_dir: str = "runs"
@@ -376,8 +383,12 @@ class SAC:
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = speed.weight_view(self.actor), speed.weight_view(self.critic)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic)
+        # After --init-from (SPEC §10): Adam's rates scaled to this run's batch (--init-batch), reached by a warm-up
+        batch = world() * args.num_envs * args.batch_size
+        scale = math.sqrt(batch / args.init_batch) if args.init_from and args.init_batch else 1.0
+        self.lrs = (args.lr_actor * scale, args.lr_critic * scale)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.lrs[0])
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.lrs[1])
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
@@ -426,7 +437,7 @@ class SAC:
         batch = self.to_tensors(np_batch)
         if self.args.init_from and self.n_updates < self.args.init_warmup:  # --init-warmup (0: none)
             scale = (self.n_updates + 1) / self.args.init_warmup
-            for opt, lr in ((self.actor_opt, self.args.lr_actor), (self.critic_opt, self.args.lr_critic)):
+            for opt, lr in zip((self.actor_opt, self.critic_opt), self.lrs, strict=True):
                 for group in opt.param_groups:
                     group["lr"] = lr * scale
         critic_loss, actor_loss, target, stats = self.compute_losses(batch)

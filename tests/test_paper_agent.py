@@ -7,6 +7,7 @@ import csv
 import hashlib
 import http.server
 import json
+import math
 import os
 import pathlib
 import socket
@@ -227,6 +228,7 @@ def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path
         (["--init-from", "{paper}", "--init-warmup", "-1"], "--init-warmup must be non-negative, got -1"),
         (["--init-from", "{paper}", "--init-learning-starts", "-3"], "--init-learning-starts must be non-negative"),
         (["--init-warmup", "100"], "--init-warmup 100 does nothing without --init-from"),
+        (["--init-from", "{paper}", "--init-batch", "-256"], "--init-batch must be non-negative, got -256"),
         (["--init-learning-starts", "0"], "--init-learning-starts 0 does nothing without --init-from"),
         (["--eval-only", "--checkpoint", "{paper}", "--init-prior-count", "9"], "--init-prior-count 9 does nothing"),
     ],
@@ -298,7 +300,7 @@ def test_init_from_starts_a_new_run_from_the_files_networks_and_normalizer_only(
     original = our_agent(3)
     write_paper_file(tmp_path / "gangstr.pt", original)
     out = run_script("--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--n-updates", "0", "--n-epochs", "1",
-                     "--init-prior-count", "500", runs_dir=tmp_path / "runs")  # fmt: skip
+                     "--init-prior-count", "500", "--no-freeze-normalizer", runs_dir=tmp_path / "runs")  # fmt: skip
     assert out.returncode == 0, out.stderr
     (run,) = (tmp_path / "runs").iterdir()  # a new run folder; 3 blocks, read from the file
     config = json.loads((run / "config.json").read_text())
@@ -311,6 +313,22 @@ def test_init_from_starts_a_new_run_from_the_files_networks_and_normalizer_only(
     assert state["counters"]["epoch"] == 1 and state["actor_opt"]["state"] == {}  # fresh Adam, never stepped
     assert config["init_from_sha256"] == hashlib.sha256((tmp_path / "gangstr.pt").read_bytes()).hexdigest()
     assert "| no SAC update |" in out.stdout and "critic loss" not in out.stdout
+
+
+def test_init_from_keeps_the_files_normalizer_unless_told_not_to_and_records_it(tmp_path):
+    write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
+    for flags, frozen in (([], True), (["--no-freeze-normalizer"], False)):
+        runs = tmp_path / f"runs{len(flags)}"
+        out = run_script("--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--n-epochs", "1", "--init-prior-count",
+                         "500", *flags, runs_dir=runs)  # fmt: skip
+        assert out.returncode == 0, out.stderr
+        (run,) = runs.iterdir()
+        assert json.loads((run / "config.json").read_text())["freeze_normalizer"] is frozen
+        count = torch.load(run / "checkpoint.pt", weights_only=True)["normalizer"]["count"]
+        assert count == (500 if frozen else 500 + 2 * 3 * 11)
+    out = run_script(*TINY, "--n-epochs", "1", runs_dir=tmp_path / "scratch")  # without --init-from: it learns them
+    (run,) = (tmp_path / "scratch").iterdir()
+    assert out.returncode == 0 and json.loads((run / "config.json").read_text())["freeze_normalizer"] is False
 
 
 def test_a_fixed_agent_keeps_the_files_normalizer_and_says_so_on_the_progress_and_epoch_lines(tmp_path):
@@ -389,15 +407,22 @@ def learning_rates(learner: gh.Learner, updates: int) -> list[tuple[float, float
 
 
 def test_after_init_from_both_learning_rates_rise_linearly_over_init_warmup_updates_then_stay():
-    learner = learner_with_segments(4, init_from="gangstr.pt", init_warmup=4, lr_actor=1e-3, lr_critic=2e-3)
+    rates = dict(lr_actor=1e-3, lr_critic=2e-3)
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_batch=0, init_warmup=4, **rates)
     want = [(1e-3 * k / 4, 2e-3 * k / 4) for k in (1, 2, 3, 4)] + [(1e-3, 2e-3)] * 3
     assert learning_rates(learner, 7) == pytest.approx(want, rel=1e-12)
     learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4  # a fork's own schedule after the warm-up is its own
     assert learning_rates(learner, 1) == [(5e-4, 2e-3)]
 
 
+@pytest.mark.parametrize("init_batch, scale", [(32, 0.5), (8, 1.0), (2, 2.0), (0, 1.0)])
+def test_after_init_from_the_learning_rates_follow_adams_square_root_rule_to_this_runs_batch(init_batch, scale):
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_batch=init_batch, init_warmup=2)  # batch 8
+    assert learning_rates(learner, 3) == pytest.approx([(0.5e-3 * scale, 0.5e-3 * scale)] + [(1e-3 * scale,) * 2] * 2)
+
+
 def test_without_init_from_the_learning_rates_are_never_touched():
-    learner = learner_with_segments(4, init_warmup=4, init_learning_starts=50)  # ignored without --init-from
+    learner = learner_with_segments(4, init_batch=32, init_warmup=4, init_learning_starts=50)  # ignored without
     learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4
     assert learning_rates(learner, 3) == [(5e-4, 1e-3)] * 3
     assert learner.train([np.random.default_rng(2)])  # updates at once: the replay holds a segment
@@ -418,8 +443,9 @@ def test_a_run_resumed_during_the_warmup_reproduces_the_uninterrupted_run(tmp_pa
     assert run_script(*start, "--n-epochs", "1", runs_dir=tmp_path / "b").returncode == 0
     (run_a,), (run_b,) = (tmp_path / "a").iterdir(), (tmp_path / "b").iterdir()
     state = torch.load(run_b / "checkpoint.pt", weights_only=True)
-    assert state["counters"]["n_updates"] == 2  # 2 of the warm-up's 8 updates, the second at 2/8 of the rate
-    assert state["actor_opt"]["param_groups"][0]["lr"] == pytest.approx(1e-3 * 2 / 8)
+    assert state["counters"]["n_updates"] == 2  # 2 of the warm-up's 8 updates, the second at 2/8 of the rate,
+    rate = 1e-3 * math.sqrt(16 / 6144)  # itself the default square-root rule's: batch 16 against the paper's 24 x 256
+    assert state["actor_opt"]["param_groups"][0]["lr"] == pytest.approx(rate * 2 / 8)
     out = run_script("--resume", str(run_b / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
     assert out.returncode == 0, out.stderr
     rows = read_rows(run_a)
@@ -435,8 +461,9 @@ BEFORE_FINE_TUNING = "54795e0"
 @pytest.mark.parametrize("script, flags", [("gangstr_hme.py", ["--sp-ratio", "0.3"]), ("lp_baseline.py", []),
                                            ("vds_baseline.py", [])])  # fmt: skip
 def test_a_run_without_init_from_computes_what_it_did_before_the_fine_tuning_flags(tmp_path, script, flags):
-    if not (ROOT / ".git").exists():
-        pytest.skip("needs the project's git history (a clone)")
+    has = subprocess.run(["git", "cat-file", "-e", f"{BEFORE_FINE_TUNING}^{{commit}}"], cwd=ROOT, capture_output=True)
+    if has.returncode != 0:
+        pytest.skip(f"needs the project's git history down to {BEFORE_FINE_TUNING} (a full clone)")
     before = tmp_path / "before"
     before.mkdir()
     tar = subprocess.run(["git", "archive", BEFORE_FINE_TUNING, "--", ".", ":!results", ":!tests"], cwd=ROOT,
