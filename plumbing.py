@@ -130,8 +130,7 @@ def check_args(a, check_sampler_args) -> str | None:
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes",
-                 "init_batch", "init_warmup", "init_learning_starts"):  # fmt: skip
+    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
@@ -141,7 +140,7 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--seed must be in [0, 2**32), got {a.seed}"
     if a.alpha < 0:
         return f"--alpha must be non-negative, got {a.alpha}"
-    for name in ("lr_actor", "lr_critic"):
+    for name in ("lr_actor", "lr_critic", "init_lr_scale"):
         if getattr(a, name) <= 0:
             return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:

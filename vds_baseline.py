@@ -134,10 +134,10 @@ class Args:
     """start a new run from this file's networks and normalizer (a checkpoint; paper: the authors' agent); rest fresh"""
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
-    init_batch: int = 6144
-    """with --init-from: the batch the file's agent learned with (the paper's: 24 workers x 256); Adam's square-root
-    rule scales the learning rates by sqrt(this run's batch / it), one worker's by 0.2: it kept the paper's agent,
-    which the unscaled rates took from 0.72 to 0.48 (docs/results.md, "Continuing the paper's training"); 0: unscaled"""
+    init_lr_scale: float = 0.1
+    """with --init-from: both learning rates are multiplied by this; at one worker the paper's rates (1) lost the
+    paper's agent, 0.2 (Adam's square-root rule for its batch) kept S5 at 0.43-0.82 over 10 epochs and 0.1 at
+    0.80-0.92 (docs/results.md, "Continuing the paper's training")"""
     init_warmup: int = 2000
     """with --init-from: SAC updates over which both learning rates rise linearly from 0 (a fresh Adam's first steps
     move every weight by about lr, a trained network's too; 2,000 = 2 / (1 - beta2), the untuned warm-up of Ma and
@@ -383,9 +383,8 @@ class SAC:
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = speed.weight_view(self.actor), speed.weight_view(self.critic)
-        # After --init-from (SPEC §10): Adam's rates scaled to this run's batch (--init-batch), reached by a warm-up
-        batch = world() * args.num_envs * args.batch_size
-        scale = math.sqrt(batch / args.init_batch) if args.init_from and args.init_batch else 1.0
+        # After --init-from (SPEC §10): Adam's rates scaled down (--init-lr-scale), reached by a warm-up (update)
+        scale = args.init_lr_scale if args.init_from else 1.0
         self.lrs = (args.lr_actor * scale, args.lr_critic * scale)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.lrs[0])
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.lrs[1])

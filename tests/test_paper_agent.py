@@ -7,7 +7,6 @@ import csv
 import hashlib
 import http.server
 import json
-import math
 import os
 import pathlib
 import socket
@@ -228,7 +227,7 @@ def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path
         (["--init-from", "{paper}", "--init-warmup", "-1"], "--init-warmup must be non-negative, got -1"),
         (["--init-from", "{paper}", "--init-learning-starts", "-3"], "--init-learning-starts must be non-negative"),
         (["--init-warmup", "100"], "--init-warmup 100 does nothing without --init-from"),
-        (["--init-from", "{paper}", "--init-batch", "-256"], "--init-batch must be non-negative, got -256"),
+        (["--init-from", "{paper}", "--init-lr-scale", "0"], "--init-lr-scale must be positive, got 0.0"),
         (["--init-learning-starts", "0"], "--init-learning-starts 0 does nothing without --init-from"),
         (["--eval-only", "--checkpoint", "{paper}", "--init-prior-count", "9"], "--init-prior-count 9 does nothing"),
     ],
@@ -408,21 +407,23 @@ def learning_rates(learner: gh.Learner, updates: int) -> list[tuple[float, float
 
 def test_after_init_from_both_learning_rates_rise_linearly_over_init_warmup_updates_then_stay():
     rates = dict(lr_actor=1e-3, lr_critic=2e-3)
-    learner = learner_with_segments(4, init_from="gangstr.pt", init_batch=0, init_warmup=4, **rates)
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_lr_scale=1.0, init_warmup=4, **rates)
     want = [(1e-3 * k / 4, 2e-3 * k / 4) for k in (1, 2, 3, 4)] + [(1e-3, 2e-3)] * 3
     assert learning_rates(learner, 7) == pytest.approx(want, rel=1e-12)
     learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4  # a fork's own schedule after the warm-up is its own
     assert learning_rates(learner, 1) == [(5e-4, 2e-3)]
 
 
-@pytest.mark.parametrize("init_batch, scale", [(32, 0.5), (8, 1.0), (2, 2.0), (0, 1.0)])
-def test_after_init_from_the_learning_rates_follow_adams_square_root_rule_to_this_runs_batch(init_batch, scale):
-    learner = learner_with_segments(4, init_from="gangstr.pt", init_batch=init_batch, init_warmup=2)  # batch 8
-    assert learning_rates(learner, 3) == pytest.approx([(0.5e-3 * scale, 0.5e-3 * scale)] + [(1e-3 * scale,) * 2] * 2)
+@pytest.mark.parametrize("scale", [0.1, 0.5, 2.0])
+def test_after_init_from_the_warmup_ramps_to_the_learning_rates_times_init_lr_scale(scale):
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_lr_scale=scale, init_warmup=2, lr_critic=2e-3)
+    assert learning_rates(learner, 3) == pytest.approx(
+        [(0.5e-3 * scale, 1e-3 * scale)] + [(1e-3 * scale, 2e-3 * scale)] * 2
+    )
 
 
 def test_without_init_from_the_learning_rates_are_never_touched():
-    learner = learner_with_segments(4, init_batch=32, init_warmup=4, init_learning_starts=50)  # ignored without
+    learner = learner_with_segments(4, init_lr_scale=0.5, init_warmup=4, init_learning_starts=50)  # ignored without
     learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4
     assert learning_rates(learner, 3) == [(5e-4, 1e-3)] * 3
     assert learner.train([np.random.default_rng(2)])  # updates at once: the replay holds a segment
@@ -444,7 +445,7 @@ def test_a_run_resumed_during_the_warmup_reproduces_the_uninterrupted_run(tmp_pa
     (run_a,), (run_b,) = (tmp_path / "a").iterdir(), (tmp_path / "b").iterdir()
     state = torch.load(run_b / "checkpoint.pt", weights_only=True)
     assert state["counters"]["n_updates"] == 2  # 2 of the warm-up's 8 updates, the second at 2/8 of the rate,
-    rate = 1e-3 * math.sqrt(16 / 6144)  # itself the default square-root rule's: batch 16 against the paper's 24 x 256
+    rate = 1e-3 * 0.1  # the default --init-lr-scale
     assert state["actor_opt"]["param_groups"][0]["lr"] == pytest.approx(rate * 2 / 8)
     out = run_script("--resume", str(run_b / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
     assert out.returncode == 0, out.stderr
