@@ -2,7 +2,7 @@
 """Plot the paper's figures from run folders (SPEC §10: one progress.csv row per epoch).
 
     python plot_results.py --condition SP-20% runs/gangstr_hme__* --condition SP-0% runs/gangstr_sp0__* \
-        --reference SP-0% --out figures
+        --reference SP-0% --out figures [--epochs N]
 
 Each --condition names a condition and lists its run folders (one per seed). Figures, as PNG and PDF:
 - global_sr: global success rate over episodes, mean +- std over seeds; a star marks the points where
@@ -68,6 +68,11 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"cannot read n_blocks from {str(config)!r} ({type(e).__name__}: {e})") from None
     return run
+
+
+def first_epochs(run: dict, n: int) -> dict:
+    """The run's first n epochs (n = 0: all), so that runs of different lengths compare over the same span."""
+    return {k: v[:n] if n and isinstance(v, np.ndarray) else v for k, v in run.items()}
 
 
 def stack(runs: list[dict], column: str) -> np.ndarray:
@@ -529,7 +534,10 @@ def main(argv=None) -> int:
     parser.add_argument("--reference", default=None, help="condition the others are tested against (Welch)")
     parser.add_argument("--alpha", type=float, default=0.05, help="significance level of the stars")
     parser.add_argument("--out", default="figures", help="folder for the PNG and PDF files")
+    parser.add_argument("--epochs", type=int, default=0, help="only the first N epochs of every run (0: all)")
     args = parser.parse_args(argv)
+    if args.epochs < 0:
+        parser.error(f"--epochs must be 0 (all) or positive, got {args.epochs}")
     conditions = {}
     for name, *folders in args.condition:
         if not folders:
@@ -537,7 +545,7 @@ def main(argv=None) -> int:
         if name in conditions:
             parser.error(f"--condition {name!r} is given twice")
         try:
-            conditions[name] = [read_run(Path(f)) for f in folders]
+            conditions[name] = [first_epochs(read_run(Path(f)), args.epochs) for f in folders]
         except ValueError as e:
             parser.error(str(e))  # exit code 2, one line naming the file
     blocks = {int(r["n_blocks"]) for runs in conditions.values() for r in runs}

@@ -343,6 +343,9 @@ ENV_VERSION = fetch5_env.ENV_VERSION  # a checkpoint names the environment it wa
 CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
 NETWORKS = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # SAC's, as saved
 REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays
+# Args fields newer than some checkpoints, each with the value that computes what the run computed before it:
+# a run started with --init-from before the fine-tuning defaults (SPEC §10) keeps its rates on --resume.
+PREDATED = dict(init_lr_scale=1.0, init_warmup=0, init_learning_starts=0)
 
 
 def script_of(Args: type) -> str:
@@ -476,6 +479,7 @@ def load_checkpoint(Args: type, path: str, flag: str = "--resume") -> dict:
     script = script_of(Args)
     if state.get("script", script) != script:
         checkpoint_error(flag, path, f"a checkpoint of {state['script']}.py, not of {script}.py: use that script")
+    state["args"] = PREDATED | state["args"]  # a run begun before these flags resumes as it began
     try:
         Args(**state["args"])
     except TypeError as e:

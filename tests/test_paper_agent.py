@@ -436,6 +436,19 @@ def test_after_init_from_no_update_runs_until_the_replay_holds_init_learning_sta
     assert learner.train([np.random.default_rng(2)]) and learner.agent.n_updates == 2  # 5 segments: it learns
 
 
+def test_a_checkpoint_from_before_the_fine_tuning_flags_resumes_at_its_own_rates(tmp_path):
+    args = gh.Args(n_blocks=3, buffer_size=400, init_from="gangstr.pt", init_lr_scale=0.3, init_warmup=5)
+    state = plumbing.save_state(gh.Run(args, torch.device("cpu")))
+    for key in ("init_lr_scale", "init_warmup", "init_learning_starts"):
+        del state["args"][key]  # as written before these flags existed
+    plumbing.save_checkpoint(state, tmp_path / "old.pt")
+    saved = gh.Args(**plumbing.load_checkpoint(gh.Args, str(tmp_path / "old.pt"), "--resume")["args"])
+    assert (saved.init_lr_scale, saved.init_warmup, saved.init_learning_starts) == (1.0, 0, 0)
+    plumbing.save_checkpoint(plumbing.save_state(gh.Run(args, torch.device("cpu"))), tmp_path / "new.pt")
+    saved = gh.Args(**plumbing.load_checkpoint(gh.Args, str(tmp_path / "new.pt"), "--resume")["args"])
+    assert (saved.init_lr_scale, saved.init_warmup) == (0.3, 5)  # a newer checkpoint keeps its own
+
+
 def test_a_run_resumed_during_the_warmup_reproduces_the_uninterrupted_run(tmp_path):
     write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
     # the first cycle (3 segments) waits for the replay; then 2 updates a cycle: 6 by epoch 2, of a warm-up of 8

@@ -97,6 +97,7 @@ def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
         (["--condition", "A"], "'A'"),
         (["--condition", "A", "RUN", "--reference", "B"], "'B'"),
         (["--condition", "A", "RUN", "--alpha", "2"], "2.0"),
+        (["--condition", "A", "RUN", "--epochs", "-3"], "-3"),
     ],
 )
 def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
@@ -105,6 +106,20 @@ def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
     with pytest.raises(SystemExit) as e:
         pr.main([*argv, "--out", str(tmp_path / "f")])
     assert e.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_epochs_cuts_every_run_to_its_first_n_epochs_in_figures_and_tables(tmp_path):
+    long, short = (
+        fake_run(tmp_path / "long", 0, 0.5, False, epochs=12),
+        fake_run(tmp_path / "short", 1, 0.9, False, epochs=5),
+    )
+    pr.main(
+        ["--condition", "L", str(long), "--condition", "S", str(short), "--epochs", "4", "--out", str(tmp_path / "f")]
+    )
+    table = (tmp_path / "f" / "tables.md").read_text()
+    assert "epoch 3 |" in table and "epoch 4 |" not in table  # epochs 0-3, of both runs
+    pr.main(["--condition", "L", str(long), "--out", str(tmp_path / "all")])
+    assert "epoch 11 |" in (tmp_path / "all" / "tables.md").read_text()  # 0: every epoch
 
 
 def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
