@@ -103,7 +103,7 @@ def parse_args(Args: type, check_sampler_args, argv=None):
 
 
 def check_init_flags(a, given: set[str]) -> str | None:
-    """The flags that shape a run started from a trained agent (--init-prior-count, --init-warmup,
+    """The flags that shape a run started from a trained agent (--init-prior-count, --init-lr-scale, --init-warmup,
     --init-learning-starts) do nothing without --init-from: given without it (a resume keeps its own), refused."""
     stray = sorted(f for f in given if f.startswith("init_") and f != "init_from")
     if stray and not (a.init_from or a.resume):
@@ -153,6 +153,9 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
     if a.stable_steps > a.segment_len:
         return f"--stable-steps must be at most --segment-len ({a.segment_len}), got {a.stable_steps}"
+    if a.init_learning_starts > a.buffer_size // a.segment_len:  # else no update would ever run
+        return (f"--init-learning-starts {a.init_learning_starts} is more segments than a replay holds "
+                f"({a.buffer_size // a.segment_len}: --buffer-size / --segment-len)")  # fmt: skip
     if a.buffer_size < a.n_segments * a.segment_len:
         return f"--buffer-size must hold one cycle ({a.n_segments * a.segment_len} transitions), got {a.buffer_size}"
     n = a.n_blocks  # replay bytes: float32 observations and actions, int8 configs; SPEC §12's memory limit

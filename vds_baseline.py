@@ -143,7 +143,7 @@ class Args:
     move every weight by about lr, a trained network's too; 2,000 = 2 / (1 - beta2), the untuned warm-up of Ma and
     Yarats 2021); 0: none"""
     init_learning_starts: int = 0
-    """with --init-from: segments each worker's replay holds before the first SAC update (0: measured no better)"""
+    """with --init-from: segments each worker collects before the first SAC update (0: measured no better)"""
     freeze_normalizer: bool = False
     """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md); with
     --init-from it is on unless --no-freeze-normalizer: updating them lost the paper's agent (docs/results.md)"""
@@ -1113,8 +1113,11 @@ class Learner:
         workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
         args, infos = self.args, []
         her_prob = 1 - 1 / (1 + args.her_k)
-        starts = max(1, args.init_learning_starts if args.init_from else 1)  # --init-learning-starts
-        for _ in range(args.n_updates if self.buffer.size >= starts else 0):
+        # --init-learning-starts (SPEC §10), counted as every process counts it: a resumed torchrun job's other
+        # processes restart their replays (SPEC §10), and all must update together or none
+        stored = self.segments // (world() * args.num_envs)  # each worker's segments so far
+        waiting = args.init_from and stored < args.init_learning_starts
+        for _ in range(args.n_updates if self.buffer.size and not waiting else 0):
             info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
         return plumbing.update_means(infos)  # one wait for the GPU a cycle, not one an update

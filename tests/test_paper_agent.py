@@ -227,6 +227,7 @@ def test_a_file_almost_in_the_papers_format_exits_2_saying_what_differs(tmp_path
         (["--init-from", "{paper}", "--init-warmup", "-1"], "--init-warmup must be non-negative, got -1"),
         (["--init-from", "{paper}", "--init-learning-starts", "-3"], "--init-learning-starts must be non-negative"),
         (["--init-warmup", "100"], "--init-warmup 100 does nothing without --init-from"),
+        (["--init-from", "{paper}", "--init-learning-starts", "26", "--buffer-size", "1000"], "more segments than"),
         (["--init-from", "{paper}", "--init-lr-scale", "0"], "--init-lr-scale must be positive, got 0.0"),
         (["--init-learning-starts", "0"], "--init-learning-starts 0 does nothing without --init-from"),
         (["--eval-only", "--checkpoint", "{paper}", "--init-prior-count", "9"], "--init-prior-count 9 does nothing"),
@@ -424,6 +425,7 @@ def test_after_init_from_the_warmup_ramps_to_the_learning_rates_times_init_lr_sc
 
 def test_without_init_from_the_learning_rates_are_never_touched():
     learner = learner_with_segments(4, init_lr_scale=0.5, init_warmup=4, init_learning_starts=50)  # ignored without
+    learner.segments = 4
     learner.agent.actor_opt.param_groups[0]["lr"] = 5e-4
     assert learning_rates(learner, 3) == [(5e-4, 1e-3)] * 3
     assert learner.train([np.random.default_rng(2)])  # updates at once: the replay holds a segment
@@ -431,8 +433,10 @@ def test_without_init_from_the_learning_rates_are_never_touched():
 
 def test_after_init_from_no_update_runs_until_the_replay_holds_init_learning_starts_segments():
     learner = learner_with_segments(3, init_from="gangstr.pt", init_learning_starts=5, n_updates=2)
+    learner.segments = 3  # the run's count of segments, which every process keeps alike
     assert learner.train([np.random.default_rng(2)]) == {} and learner.agent.n_updates == 0
     learner.buffer.store(*(getattr(learner.buffer, k)[:, :2] for k in ("obs", "ag", "g", "actions")))
+    learner.segments = 5
     assert learner.train([np.random.default_rng(2)]) and learner.agent.n_updates == 2  # 5 segments: it learns
 
 
