@@ -392,7 +392,7 @@ MUTATIONS = [
              '    if "paper" in (argv or sys.argv):\n        paper_file("--init-from")\n'
              "    args, state, init = parse_args(Args, check_sampler_args, argv), None, None\n    for flag",
              "tests/test_paper_agent.py -k bad_flag_beside_paper"),
-    # --- fine-tuning after --init-from (--init-warmup, --init-learning-starts) ---------------------------
+    # --- fine-tuning after --init-from (--init-lr-scale, --init-warmup, ...); plot_results --epochs ---------
     Mutation("--init-warmup: the learning rates left at theirs during the warm-up", G,
              '                    group["lr"] = lr * scale\n', "                    pass\n",
              "tests/test_paper_agent.py -k 'rise_linearly or resumed_during_the_warmup'"),
