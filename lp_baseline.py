@@ -889,17 +889,25 @@ class Sampler:
         (fetch5_env.goal_reached), else 0; noise_next, noise_pi (B, 4), the policy samples' normal draws.
         target (B,): the critic's TD targets, without grad.
       epoch_stats(): its progress.csv columns this epoch, the same keys every epoch. stats are this process's:
-        a count goes through plumbing.summed, which sums it over processes (right under torchrun).
+        a count goes through plumbing.summed, which sums it over processes (right under torchrun). Only such
+        per-process counts: a number every process already holds whole (merged in after_cycle) would be
+        multiplied by the number of processes.
       state_dict(), load_state_dict(s): its checkpoint entries, top-level keys of the checkpoint, which
         load_state_dict gets whole; never one of plumbing.save_state's own: script, env_version, versions,
         args, counters, epoch_so_far, rows, actor, critic, critic_target, actor_opt, critic_opt, normalizer,
         graph, encountered, rng, env_rng, buffer (nor format). Values that torch.load(weights_only=True)
         accepts: tensors, Python numbers, str, bool, None, and lists, tuples and dicts of them (no numpy).
+        state_dict is called at cycle boundaries only, after after_cycle (the epoch's checkpoint, a stop's);
+        load_state_dict on --resume, after the Learner's own state: its graph comes back with its nodes in
+        their saved order, so a draw over nodes by index (as autotelic_goal's) is the uninterrupted run's.
       open(folder, stopping), close(): a training run's folder, for files of its own, and whether Ctrl-C or
         SIGTERM asked the run to stop (a sampler that waits stops waiting); then the run's end.
       stats: this epoch's counts (a Counter of numbers; checkpointed, cleared each epoch); goals: this process's
         goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
       check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
+      Args.RESUMABLE (optional; gangstr_hme.py's names the person partner's page), in the sampler's group of
+        Args, which a fork that replaces the group keeps or remakes: the options --resume may change; --resume
+        refuses a change to any other.
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
     global generator or a generator of the sampler's own): exact --resume and the same run under any split of
     the workers into processes (--num-envs, torchrun) depend on it (SPEC §11).

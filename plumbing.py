@@ -640,27 +640,38 @@ PAPER_COMMIT = "f95e3900401cd690c068deeadad9607cef095afa"  # of https://github.c
 PAPER_URL = f"https://raw.githubusercontent.com/akakzia/gangstr/{PAPER_COMMIT}/hipstr/gangstr.pt"
 PAPER_SHA256 = "0e37c60367ca83994028529553599eced86f1ab8731b06fcc691a7b42c9ed0e8"
 PAPER_TIMEOUT = 30  # seconds a silent server is waited for
+PAPER_WAIT = 300  # seconds a torchrun process waits for its node's LOCAL_RANK 0 to download the file
 
 
 def paper_file(flag: str) -> str:
     """The authors' file in $XDG_CACHE_HOME (or ~/.cache)/hme-gangstr/, downloaded the first time (torch.hub:
-    the hash checked, no partial file kept, a progress bar on a terminal); or exit 2 with one line, the cache
-    as it was."""
+    the hash checked, the file renamed into place once whole, a progress bar on a terminal); or exit 2 with one
+    line, the cache as it was (after a Ctrl-C too, which then goes on as an interruption). Under torchrun the
+    command line is read before the processes meet: one process a node downloads (LOCAL_RANK 0); the others
+    wait up to PAPER_WAIT seconds for its file, and check it themselves (if it fails, torchrun ends them)."""
     path = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hme-gangstr" / "gangstr.pt"
-    made = next((p for p in reversed(path.parents) if not p.exists()), None)  # the first folder to create
+    downloads = int(os.environ.get("LOCAL_RANK", "0")) == 0
+    made = next((p for p in reversed(path.parents) if not p.exists()), None) if downloads else None  # to remove
     timeout = socket.getdefaulttimeout()
     try:
-        if not path.is_file():
+        if downloads and not path.is_file():
             progress(f"{flag} paper: downloading the authors' agent (1.2 MB) to {path}", final=True)
             socket.setdefaulttimeout(PAPER_TIMEOUT)  # urlopen's, inside torch.hub
             path.parent.mkdir(parents=True, exist_ok=True)
             torch.hub.download_url_to_file(PAPER_URL, str(path), PAPER_SHA256, progress=sys.stderr.isatty())
-        with open(path, "rb") as f:  # a file put there by hand is checked too
+        deadline = time.monotonic() + PAPER_WAIT
+        while not path.is_file():  # another process downloads: its file appears whole (renamed) or not at all
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"LOCAL_RANK 0 did not download it in {PAPER_WAIT} s")
+            time.sleep(0.1)
+        with open(path, "rb") as f:  # a file put there by hand, or by another process, is checked too
             if (digest := hashlib.file_digest(f, "sha256").hexdigest()) != PAPER_SHA256:
                 raise ValueError(f"{path} is not the authors' file, its sha256 is {digest}")
-    except Exception as e:  # noqa: BLE001 (offline, a silent server, a wrong hash, a full disk: the same advice)
+    except BaseException as e:  # noqa: BLE001 (offline, a silent server, a wrong hash, a full disk, a Ctrl-C)
         if made is not None:
             shutil.rmtree(made, ignore_errors=True)
+        if not isinstance(e, Exception):
+            raise  # a Ctrl-C: run_main says so and exits 130
         print(f"error: {flag} paper: {type(e).__name__}: {' '.join(str(e).split())}; download {PAPER_URL} and put "
               f"it at {path}", file=sys.stderr)  # fmt: skip
         sys.exit(2)
@@ -724,12 +735,17 @@ def learning_text(args, critic_loss: float) -> str:
 
 def update_means(infos: list[dict]) -> dict[str, float]:
     """The mean over a cycle's updates of each value they log (0-d tensors, on the device), read in one transfer:
-    a read waits for the GPU to finish the work before it, so once a cycle rather than once an update."""
+    a read waits for the GPU to finish the work before it, so once a cycle rather than once an update. Each
+    value is a mean over this process's workers' batches; under torchrun, the mean over every process's, so
+    that a row means what it means with --num-envs (SPEC §10): processes hold equal numbers of workers."""
     keys = list(infos[0]) if infos else []
     if not keys:
         return {}
     values = torch.stack([torch.stack([i[k].detach().double() for k in keys]) for i in infos]).cpu().numpy()
-    return {k: float(np.mean(values[:, j])) for j, k in enumerate(keys)}  # as np.mean of the numbers
+    means = np.array([np.mean(values[:, j]) for j in range(len(keys))])  # as np.mean of the numbers
+    if world() > 1:
+        means = all_sum(means) / world()
+    return {k: float(m) for k, m in zip(keys, means, strict=True)}
 
 
 def cycle_progress(run, detail: str):

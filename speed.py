@@ -9,7 +9,9 @@ computes the same losses faster (docs/speed.md has each trick's figure):
     --precision bf16, the large nets' products in bf16. A probe at start (fast_nets_compute) checks that they
     still compute the script's own losses and gradients: a fork that changed MLP or an aggregation gets the
     plain nets, said in one line. tests/test_update.py holds them to the plain nets.
-  - Adam's fused step; on the CPU, glibc told to keep the update's freed memory (keep_freed_memory).
+  - Adam's fused step, in the script's own optimizers, every parameter group and setting kept (fuse_adams; a
+    fork's optimizer that the fused step cannot stand in for is kept as built, said in one line); on the
+    CPU, glibc told to keep the update's freed memory (keep_freed_memory).
 Whatever --plain says, three that change no number: acting through views of the weights that do not
 require grad (weight_view), a batch sent to a GPU in one pinned copy (to_device), and the envs stepped in
 threads (step_envs, physics_first). And what the command line and the benchmarks ask of the machine:
@@ -45,8 +47,8 @@ import oracle_graph as og
 def fast_update(agent):
     """The fast path of a training script's SAC `agent`: its losses (agent.compute_losses, eager or --compile's)
     computed within fast_nets, if the probe finds that they compute the script's own nets (agent.fast_nets
-    says whether); Adam's fused step, one pass per tensor (on the CPU, torch's default is a dozen small ops per
-    tensor: 4x slower); on the CPU, glibc's kept memory."""
+    says whether); Adam's fused step (fuse_adams), one pass per tensor (on the CPU, torch's default is a dozen small
+    ops per tensor: 4x slower); on the CPU, glibc's kept memory."""
     script = sys.modules[type(agent).__module__]  # the training script whose SAC this is
     dtype = dict(fp32=torch.float32, bf16=torch.bfloat16)[agent.args.precision]  # the large products'
     kernels = agent.device.type == "cpu"
@@ -59,10 +61,41 @@ def fast_update(agent):
                 return losses(batch)
 
         agent.compute_losses = compute_losses
-    fused = lambda opt: torch.optim.Adam(opt.param_groups[0]["params"], lr=opt.defaults["lr"], fused=True)  # noqa: E731
-    agent.actor_opt, agent.critic_opt = fused(agent.actor_opt), fused(agent.critic_opt)
+    fuse_adams(agent)
     if kernels:
         keep_freed_memory()
+
+
+def fuse_adams(agent):
+    """Adam's fused step for the SAC `agent`'s two optimizers, turned on in place, as torch's own load of a
+    checkpoint sets it: every parameter group keeps its weights and settings (rate, betas, eps, weight decay,
+    amsgrad, AdamW's), the optimizer its defaults and moments, and whatever holds it (the warm-up of SAC.update,
+    a fork's rate schedule) still steers it. One that the fused step cannot stand in for (fused_adam_refuses) is
+    kept as the script built it, said in one line."""
+    kept = []
+    for name in ("actor", "critic"):
+        opt = getattr(agent, f"{name}_opt")
+        if why := fused_adam_refuses(opt):
+            kept.append(f"the {name}'s optimizer {why}")
+            continue
+        for settings in (opt.defaults, *opt.param_groups):
+            settings["fused"] = True
+        if opt.state:  # moments already taken: torch's load moves each step count where the fused step keeps it
+            opt.load_state_dict(opt.state_dict())
+    if kept and not (dist.is_initialized() and dist.get_rank() > 0):
+        print(f"fused Adam off: {'; '.join(kept)}: kept as the script built it", flush=True)
+
+
+def fused_adam_refuses(opt: torch.optim.Optimizer) -> str:
+    """Why Adam's fused step cannot stand in for `opt`'s, or '': a class other than torch's Adam and AdamW (a
+    subclass may step otherwise), or a setting that the fused step refuses (differentiable, foreach) or that
+    asks for the unfused one (fused=False)."""
+    if type(opt) not in (torch.optim.Adam, torch.optim.AdamW):
+        return f"is {type(opt).__name__}, not torch's Adam or AdamW"
+    for key, value in (("differentiable", True), ("foreach", True), ("fused", False)):
+        if any(group.get(key) is value for group in opt.param_groups):
+            return f"sets {key}={value}"
+    return ""
 
 
 FAST = dict(dtype=None, kernels=False, own=None)  # within fast_nets: its arguments, and the script's own nets

@@ -50,7 +50,7 @@ def main(out: Path, num_envs: int):
     sac.update({k: np.concatenate([b[k] for b in mine]) for k in mine[0]})
     after_one = {k: {n: t.clone() for n, t in getattr(sac, k).state_dict().items()} for k in nets}
     grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in nets}
-    first_cycle, first_normalizer, goals = [], None, []
+    first_cycle, first_normalizer, goals, logged = [], None, [], []
     for cycle in range(args.n_cycles):
         learner.learn_from(gh.run_cycle(run))
         goals.append([[gh.og.to_mask(s.g) for s in w.segments] for w in run.workers])  # the picks among them
@@ -59,7 +59,7 @@ def main(out: Path, num_envs: int):
                            for w in run.workers]  # fmt: skip
             norm = learner.agent.normalizer
             first_normalizer = torch.tensor(np.concatenate([norm.sum, norm.sumsq, [norm.count]]))
-        learner.train([w.rng for w in run.workers], run.sampler.after_update)
+        logged.append(learner.train([w.rng for w in run.workers], run.sampler.after_update))  # the row's losses
     params = torch.cat(
         [p.detach().reshape(-1) for m in (learner.agent.actor, learner.agent.critic) for p in m.parameters()]
     )
@@ -83,6 +83,7 @@ def main(out: Path, num_envs: int):
         goals=torch.tensor(goals, dtype=torch.int64).transpose(0, 1),  # (workers, cycles, segments)
         proposed=sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond_") and "_reached_" not in k),
         help_cycles=run.sampler.stats["help_cycles"],
+        losses={k: torch.tensor([m[k] for m in logged]) for k in logged[0]},
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
     if num_envs > 1:

@@ -117,6 +117,16 @@ def test_two_workers_in_one_process_run_what_two_processes_run(workers, lockstep
     assert apart.float().mean() < 1e-3, f"{int(apart.sum())} of {len(apart)} parameters differ"
 
 
+def test_the_logged_losses_are_the_mean_over_every_workers_batches_in_one_process_or_two(workers, lockstep):
+    """A row's critic_loss (and every value the updates log) is one number for one run: torchrun's processes
+    log the mean over both workers' batches, as --num-envs 2 does, not process 0's own batch's (SPEC §10)."""
+    _, (r0, r1), _ = workers
+    assert set(lockstep["losses"]) >= {"critic_loss", "actor_loss", "q", "target", "entropy"}
+    for k, values in lockstep["losses"].items():
+        assert torch.equal(r0["losses"][k], r1["losses"][k]), k  # every process logs the same row
+        torch.testing.assert_close(r0["losses"][k], values, rtol=1e-4, atol=1e-5, msg=k)
+
+
 def test_semantic_graphs_normalizers_and_internalization_buffers_are_identical_on_both_workers(workers):
     _, (r0, r1), _ = workers
     assert len(r0["graph"]["masks"]) > 1 and len(r0["graph"]["edges"]) > 0  # the graph did grow

@@ -4,6 +4,7 @@ section a file names exists, and no text points outside the repository or speaks
 
 import dataclasses
 import re
+import shlex
 import subprocess
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from test_baselines import TINY
 import gangstr_hme as gh
 import lp_baseline as lp
 import oracle_graph as og
+import plumbing
 import vds_baseline as vds
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,11 +134,67 @@ def test_the_readme_is_short_and_opens_with_the_two_commands():
 
 
 # ------------------------------------------------------------------------------------------------
-# docs/training.md lists every flag and every progress.csv column, each under the scripts that have it
+# Every command the pages show passes the scripts' argument check
 # ------------------------------------------------------------------------------------------------
 SCRIPTS = {"gangstr_hme.py": gh, "lp_baseline.py": lp, "vds_baseline.py": vds}
+PLACEHOLDERS = {"N": "5", "X": "0.2", "K": "50", "H": "3"}  # what the pages write for a number the reader picks
+CALL = r"(?:\bpython3?|\btorchrun(?: --?[\w-]+(?: \d+)?)*) (gangstr_hme|lp_baseline|vds_baseline)\.py\b([^`]*)"
+REDIRECTS = re.compile(r"^(&|&&|\|\|?|;|\d?>.*|>>.*)$")  # a command's end: the shell's, not the script's
 
 
+def shown_commands(page: Path) -> list[tuple[str, list[str]]]:
+    """(script, arguments) of every call of a training script on a page: each line of its code blocks (a
+    trailing backslash continues it) and each inline code span, its shell variables ($common: the page's
+    assignment; a loop's $seed: its first value) and placeholders filled in."""
+    text = page.read_text()
+    blocks = re.findall(r"^```[a-z]*\n(.*?)^```", text, flags=re.MULTILINE | re.DOTALL)
+    lines = [line for b in blocks for line in b.replace("\\\n", " ").splitlines()]
+    spans = re.findall(r"`([^`]+)`", re.sub(r"^```.*?^```", "", text, flags=re.MULTILINE | re.DOTALL))
+    code = "\n".join(lines)
+    variables = dict(re.findall(r'^\s*(\w+)="([^"]*)"', code, flags=re.MULTILINE))  # name="..."
+    for name, values in re.findall(r"\bfor (\w+) in (.+?); do", code):  # a loop's first pass
+        variables[name] = shlex.split(values)[0]
+    for name in re.findall(r"\bset -- \$(\w+)", code):  # $1, $2, ... of that pass
+        variables |= {str(i): v for i, v in enumerate(shlex.split(variables[name]), 1)}
+    found = []
+    for command in lines + [" ".join(span.split()) for span in spans]:
+        for script, rest in re.findall(CALL, command):
+            rest = re.sub(r"\$\{?(\w+)\}?", lambda m: variables.get(m[1], m[0]), rest)
+            rest = rest.replace("[", "").replace("]", "")  # an optional flag: shown, so checked
+            argv = []
+            for token in shlex.split(rest, comments=True):
+                if REDIRECTS.match(token):
+                    break
+                argv.append(PLACEHOLDERS.get(token, token))
+            found.append((f"{script}.py", argv))
+    return found
+
+
+def test_every_command_the_pages_show_passes_the_argument_check(monkeypatch, tmp_path):
+    """The README's and docs' commands, and the flag combinations they show (the learner's query and picks
+    alone, with the coin, with a person...), are all accepted: a page never shows a refused command. (Not
+    whether this machine has the GPU or bf16 instructions a command names: that is for its own machine.)"""
+    monkeypatch.setattr(plumbing, "check_device", lambda a: None)
+    checkpoint = tmp_path / "checkpoint.pt"  # runs/<run>/checkpoint.pt: a file the reader has
+    checkpoint.touch()
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    commands = [(page.name, script, argv) for page in pages for script, argv in shown_commands(page)]
+    picks_and_query_alone = ("training.md", "gangstr_hme.py", ["--ask-after", "50", "--learner-picks", "zpd"])
+    assert len(commands) > 40 and picks_and_query_alone in commands
+    for page, script, argv in commands:
+        if "--help" in argv:
+            continue
+        module = SCRIPTS[script]
+        argv = [str(checkpoint) if "<" in a else a for a in argv]
+        try:
+            plumbing.parse_args(module.Args, module.check_sampler_args, argv)
+        except SystemExit as e:
+            raise AssertionError(f"{page}: python {script} {shlex.join(argv)} is refused") from e
+
+
+# ------------------------------------------------------------------------------------------------
+# docs/training.md lists every flag and every progress.csv column, each under the scripts that have it
+# ------------------------------------------------------------------------------------------------
 def training_tables(section: str) -> dict[str, list[list[str]]]:
     """docs/training.md's `## {section}`: each `### ` heading -> the rows of its table (cells, stripped)."""
     text = (ROOT / "docs/training.md").read_text()

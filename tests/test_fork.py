@@ -1,10 +1,12 @@
 """What a fork of a training script may change without silently breaking the run: a goal sampler that spends
 too few or too many of a cycle's segments is stopped at once, naming itself and the worker (Sampler's
-contract); a changed MLP takes the update off speed.py's fast nets, which implement the nets as written;
---plain turns every speed trick off. The README's example sampler, forked as the README says, trains and
-resumes, and the README names every hook of Sampler."""
+contract); a changed MLP takes the update off speed.py's fast nets, which implement the nets as written; a
+changed optimizer keeps every parameter group, setting and moment under Adam's fused step, or is kept as built,
+said in one line, where that step cannot stand in for it; --plain turns every speed trick off. The README's
+example sampler, forked as the README says, trains and resumes, and the README names every hook of Sampler."""
 
 import csv
+import inspect
 import math
 import os
 import re
@@ -189,6 +191,88 @@ def test_plain_refuses_the_speed_flags_in_one_line(monkeypatch, capsys, flags, n
 
 
 # ------------------------------------------------------------------------------------------------
+# A fork's optimizer: Adam's fused step keeps its groups and settings, or leaves it as built
+# ------------------------------------------------------------------------------------------------
+def forked_agent(critic_opt=torch.optim.AdamW, **critic_settings):
+    """A SAC whose optimizers a fork changed, before the fast path: the actor's and critic's weights in two
+    parameter groups, the second at its own rate, betas and weight decay (defaults: the fork's rate, betas,
+    eps and weight decay); the critic's optimizer `critic_opt`, by default AdamW with amsgrad."""
+    agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
+
+    def two_groups(net, adam, **settings):
+        params = list(net.parameters())
+        return adam([dict(params=params[:2]), dict(params=params[2:], lr=3e-3, betas=(0.5, 0.9), weight_decay=0.2)],
+                    lr=1e-4, betas=(0.8, 0.99), eps=1e-6, weight_decay=0.1, **settings)  # fmt: skip
+
+    agent.actor_opt = two_groups(agent.actor, torch.optim.Adam)
+    agent.critic_opt = two_groups(agent.critic, critic_opt, **(critic_settings or dict(amsgrad=True)))
+    return agent
+
+
+def settings(opt, but: tuple[str, ...] = ("fused",)) -> list[dict]:
+    """The optimizer's defaults, then each parameter group's settings and weights (by id), all but those named
+    in `but` (by default, whether the fused step steps them)."""
+    groups = [{**g, "params": [id(p) for p in g.get("params", ())]} for g in (opt.defaults, *opt.param_groups)]
+    return [{k: v for k, v in g.items() if k not in but} for g in groups]
+
+
+def test_a_fork_that_changes_adams_groups_and_settings_keeps_them_all_under_the_fused_step(capsys):
+    agent = forked_agent()
+    opts = agent.actor_opt, agent.critic_opt
+    built = [settings(opt) for opt in opts]
+    speed.fast_update(agent)  # as the fork's SAC.__init__ ends, without --plain
+    assert [settings(opt) for opt in (agent.actor_opt, agent.critic_opt)] == built
+    assert all(g["fused"] for opt in opts for g in (opt.defaults, *opt.param_groups))
+    assert agent.actor_opt is opts[0] and agent.critic_opt is opts[1]  # whatever holds them still steers them
+    assert "fused Adam off" not in capsys.readouterr().out
+    second = [p for opt in opts for p in opt.param_groups[1]["params"]]
+    before = [p.detach().clone() for p in second]
+    agent.update(random_batch(agent))
+    assert all(not torch.equal(p, b) for p, b in zip(second, before, strict=True))  # the second groups train
+
+
+def test_a_forks_optimizer_keeps_its_moments_under_the_fused_step_and_resumes_into_it():
+    agent = forked_agent()
+    agent.update(random_batch(agent))  # moments taken before the fast path
+    moments = {k: v.clone() for k, v in agent.critic_opt.state_dict()["state"][0].items()}
+    speed.fast_update(agent)
+    state = agent.critic_opt.state_dict()
+    assert state["state"][0].keys() == moments.keys()
+    assert all(torch.equal(state["state"][0][k], v) for k, v in moments.items())
+    agent.update(random_batch(agent, seed=1))
+    assert int(agent.critic_opt.state_dict()["state"][0]["step"]) == 2
+    resumed = forked_agent()  # --resume: the checkpoint's optimizer loaded after the fast path (plumbing.load_state)
+    speed.fast_update(resumed)
+    resumed.critic_opt.load_state_dict(agent.critic_opt.state_dict())
+    resumed.update(random_batch(resumed, seed=2))
+    state = resumed.critic_opt.state_dict()
+    assert int(state["state"][0]["step"]) == 3
+    assert state["param_groups"] == agent.critic_opt.state_dict()["param_groups"]  # the fork's groups, fused
+    assert all(g["fused"] for g in resumed.critic_opt.param_groups)
+
+
+@pytest.mark.parametrize(
+    "opt, kwargs, why",
+    [(torch.optim.NAdam, dict(decoupled_weight_decay=True), "is NAdam, not torch's Adam or AdamW"),
+     (type("ForkAdam", (torch.optim.Adam,), {}), {}, "is ForkAdam, not torch's Adam or AdamW"),  # a subclass
+     (torch.optim.Adam, dict(differentiable=True), "sets differentiable=True"),
+     (torch.optim.AdamW, dict(foreach=True), "sets foreach=True"),
+     (torch.optim.Adam, dict(fused=False), "sets fused=False")],
+    ids=["another-class", "a-subclass", "differentiable", "foreach", "unfused"],
+)  # fmt: skip
+def test_a_forks_optimizer_that_the_fused_step_cannot_stand_in_for_is_kept_as_built_said_in_one_line(
+    capsys, opt, kwargs, why
+):
+    agent = forked_agent(opt, **kwargs)
+    built = agent.critic_opt, settings(agent.critic_opt, but=())
+    speed.fast_update(agent)
+    assert (agent.critic_opt, settings(agent.critic_opt, but=())) == built  # fused as the fork set it
+    assert all(g["fused"] for g in agent.actor_opt.param_groups)  # the actor's Adam: fused all the same
+    out = capsys.readouterr().out.strip()
+    assert len(out.splitlines()) == 1 and out.startswith("fused Adam off") and f"the critic's optimizer {why}" in out
+
+
+# ------------------------------------------------------------------------------------------------
 # The README's fork: its example sampler in a copy of gangstr_hme.py trains, checkpoints and resumes
 # ------------------------------------------------------------------------------------------------
 def readme_fork() -> str:
@@ -245,3 +329,58 @@ def test_the_readmes_fork_section_names_every_hook_of_sampler():
     assert "goal_outcome" in hooks and "after_update" in hooks
     left_out = [h for h in hooks if not re.search(rf"(?:`|`Sampler\.|def ){h}\b", section)]  # in text or the example
     assert not left_out, f"hooks of Sampler the README does not name: {left_out}"
+
+
+# ------------------------------------------------------------------------------------------------
+# The fork's contract: Sampler's docstring names every hook the run reaches it by, and holds
+# ------------------------------------------------------------------------------------------------
+def contract_hooks(module) -> set[str]:
+    """The names Sampler's docstring lists as its contract: the first name of each of its entries."""
+    return set(re.findall(r"^      (?:Args\.)?(\w+)", module.Sampler.__doc__, flags=re.MULTILINE))
+
+
+def reached_by_the_run(module) -> set[str]:
+    """What the script and plumbing.py reach a goal sampler by: its attributes (run.sampler.x), its class
+    (GoalSampler(...)), the check beside it, the Args field plumbing reads; and the hooks the base calls."""
+    code = Path(module.__file__).read_text() + (ROOT / "plumbing.py").read_text()
+    names = set(re.findall(r"\bsampler\.(\w+)", code))
+    names |= {n for n in ("GoalSampler", "check_sampler_args") if re.search(rf"\b{n}\(", code)}
+    names |= {"RESUMABLE"} if '"RESUMABLE"' in code else set()
+    own = {name for name, f in vars(module.Sampler).items() if callable(f) and not name.startswith("_")}
+    return names | {n for n in own if re.search(rf"self\.{n}\(", inspect.getsource(module.Sampler))}
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_samplers_docstring_names_every_hook_the_run_reaches_it_by_and_lists_no_other(module):
+    listed, reached = contract_hooks(module), reached_by_the_run(module)
+    assert {"cycle", "after_cycle", "state_dict", "load_state_dict", "goal_outcome", "RESUMABLE"} <= reached
+    unnamed = reached - set(re.findall(r"\w+", module.Sampler.__doc__))
+    assert not unnamed, f"the run reaches a sampler by these, which its contract does not name: {sorted(unnamed)}"
+    stale = listed - reached
+    assert not stale, f"in the contract but reached by nothing: {sorted(stale)}"
+
+
+def test_state_dict_is_called_at_cycle_boundaries_after_after_cycle(tmp_path, monkeypatch):
+    events = []
+    for hook in ("cycle", "after_cycle", "state_dict"):
+        real = getattr(gh.GoalSampler, hook)
+        monkeypatch.setattr(gh.GoalSampler, hook, lambda self, *a, _h=hook, _r=real: events.append(_h) or _r(self, *a))
+    assert gh.main([*TINY, "--n-blocks", "3", "--n-epochs", "2", "--sp-ratio", "0.5", "--runs-dir", str(tmp_path)]) == 0
+    saves = [i for i, e in enumerate(events) if e == "state_dict"]
+    assert saves and events.count("cycle") == 2 * 2  # 2 epochs of TINY's 2 cycles, on 1 worker
+    for i in saves:  # the last hook before each save closes a cycle, and every cycle begun has been closed
+        last = next(e for e in reversed(events[:i]) if e != "state_dict")
+        assert last == "after_cycle" and events[:i].count("cycle") == events[:i].count("after_cycle"), events[: i + 1]
+
+
+def test_resume_gives_the_graph_back_with_its_nodes_in_their_saved_order():
+    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+    masks = og.OracleGraph(N).masks
+    rng = np.random.default_rng(0)
+    for m in rng.permutation(masks)[:40]:  # nodes added in no sorted order (each with its permutations)
+        graph.add_config(int(m))
+    restored = gh.SemanticGraph(N, gh.Args(n_blocks=N))
+    restored.load_state_dict(graph.state_dict())
+    assert restored.masks == graph.masks and restored.masks != sorted(graph.masks)
+    draws = [np.random.default_rng(1), np.random.default_rng(1)]
+    assert [graph.sample_node(draws[0]) for _ in range(50)] == [restored.sample_node(draws[1]) for _ in range(50)]

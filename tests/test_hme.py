@@ -239,8 +239,13 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
     assert run.sampler.stats["sp_frontier_C1"] + run.sampler.stats["sp_frontier_S2"] == episodes
 
 
-def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_and_stores_nothing(monkeypatch):
-    run = hme_run(strategy="frontier")
+PICKERS = ["", "novelty", "zpd"]  # the partner's uniform draw; the learner's picks (SPEC §7.1), in each strategy
+
+
+@pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])
+def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_and_stores_nothing(monkeypatch, picks):
+    run = hme_run(strategy="frontier", learner_picks=picks)
+    assert (type(run.sampler.sp).__name__ == "LearnerPicks") == bool(picks)
     run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
     frontiers = set(og.to_mask(run.sampler.sp.oracle.neighbours(og.from_mask(APART, N))).tolist())
     tries = []
@@ -260,8 +265,10 @@ def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_an
     assert not any(k.startswith("sp_beyond") for k in run.sampler.stats)
 
 
-def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset_until_reached(monkeypatch, sp):
-    run = hme_run(strategy="beyond")
+@pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])
+def test_beyond_strategy_retries_one_goal_beyond_a_hidden_frontier_without_reset_until_reached(monkeypatch, sp, picks):
+    run = hme_run(strategy="beyond", learner_picks=picks)
+    assert (type(run.sampler.sp).__name__ == "LearnerPicks") == bool(picks)
     run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
     stones = brute_force_stones(sp, run.learner.graph) & reachable(run.learner.graph, APART)
     agent_edges = {(run.learner.graph.masks[u], run.learner.graph.masks[v]) for u, v, _ in run.learner.graph.edge_log}
@@ -396,8 +403,10 @@ TINY = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "3", "--n-segments",
         ["--sp-ratio", "0.5", "--internalization-prob", "0"],  # NI
         ["--sp-ratio", "0.5", "--max-path-len", "2"],  # NG
         ["--sp-ratio", "1"],  # SP-100%
+        ["--sp-ratio", "0.5", "--strategy", "frontier", "--learner-picks", "zpd"],  # SPEC §7.1, in each strategy
+        ["--sp-ratio", "0.5", "--strategy", "beyond", "--learner-picks", "novelty"],
     ],
-    ids=["frontier-and-beyond", "frontier", "beyond", "NI", "NG", "SP-100"],
+    ids=["frontier-and-beyond", "frontier", "beyond", "NI", "NG", "SP-100", "frontier-zpd", "beyond-novelty"],
 )
 def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
     cmd = [sys.executable, "gangstr_hme.py", *flags, *TINY, "--runs-dir", str(tmp_path)]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 from chisquare import uniform_pvalue
-from test_hme import TINY, answers, hme_run, random_agent_graph, stream
+from test_hme import APART, C01, TINY, M, agent_graph, answers, hme_run, random_agent_graph, stream
 
 import gangstr_hme as gh
 import learner_query as lq
@@ -41,18 +41,21 @@ def safest_cost(graph, start: int, goal: int) -> float:
     return sum(cost[graph.edge_class(u, v)] for u, v in zip(path, path[1:], strict=False))
 
 
+@pytest.mark.parametrize("elsewhere", [False, True], ids=["current included", "elsewhere"])
 @pytest.mark.parametrize("signal", SIGNALS)
 @pytest.mark.parametrize("seed", range(3))
-def test_a_pick_is_always_one_of_the_offered_candidates(signal, seed):
+def test_a_pick_is_always_one_of_the_offered_candidates(signal, seed, elsewhere):
+    # elsewhere (--strategy frontier): the partner offers no frontier goal at the agent's own config
     sp = gh.SocialPartner(N)
     graph = random_agent_graph(sp, seed, p_node=0.4, p_edge=0.3)
     picks, run = picks_on(graph, signal)
     w = run.workers[0]
     for here in graph.masks[:: max(1, graph.n_nodes // 12)]:
-        frontier = sp.frontier_candidates(graph, here)
+        frontier = sp.frontier_candidates(graph, here, elsewhere)
         beyond = sp.beyond_candidates(graph, here)
-        f, b = picks.frontier_goal(graph, here, w), picks.beyond_goal(graph, here, w)
+        f, b = picks.frontier_goal(graph, here, w, elsewhere=elsewhere), picks.beyond_goal(graph, here, w)
         assert (f is None) == (len(frontier) == 0) and (f is None or f in frontier)
+        assert not (elsewhere and f == here)
         assert (b is None) == (len(beyond) == 0) and (b is None or b in beyond)
 
 
@@ -151,16 +154,20 @@ def test_zpd_values_are_the_smaller_twin_of_the_deterministic_action_from_where_
 
 
 @pytest.mark.parametrize("signal", SIGNALS)
-def test_ties_are_drawn_uniformly_from_the_workers_stream(signal):
-    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))  # no node: every candidate equally novel
+def test_ties_are_drawn_uniformly_from_the_workers_stream(signal, monkeypatch):
+    graph = gh.SemanticGraph(N, gh.Args(n_blocks=N))  # no node: every candidate a new config
     picks, run = picks_on(graph, signal)
-    if signal == "zpd":
-        picks.values = lambda w, c: np.ones(len(c))  # all equally hard
     offered = np.arange(5, dtype=np.int64) * 3 + 1
-    counts = np.zeros(5)
-    w = stream(0)
-    for _ in range(1000):
-        counts[list(offered).index(picks.pick(w, offered, np.zeros(5)))] += 1
+    monkeypatch.setattr(picks.partner, "beyond_candidates", lambda g, config: offered)
+    monkeypatch.setattr(picks, "novelty", lambda g, c: np.zeros(len(c)))  # equally novel ...
+    if signal == "zpd":
+        monkeypatch.setattr(picks, "values", lambda w, c: np.ones(len(c)))  # ... and equally hard
+    np.random.seed(0)  # noqa: NPY002 (numpy's global stream, seeded: a pick must not draw from it)
+    w, uniform = stream(0), stream(0)
+    drawn = [picks.beyond_goal(graph, 0, w) for _ in range(1000)]
+    # one draw from the worker's stream, the uniform partner's: the same goals from the same stream
+    assert drawn == [run.sampler.sp.partner.choose(uniform, offered) for _ in range(1000)]
+    counts = np.array([drawn.count(int(c)) for c in offered])
     assert uniform_pvalue(counts) > 1e-4
 
 
@@ -182,23 +189,20 @@ def test_zpd_goes_to_the_stepping_stone_its_graph_is_surest_to_arrive_at(seed):
 
 
 def test_zpd_changes_its_frontier_when_the_success_estimates_change():
-    sp = gh.SocialPartner(N)
-    graph = random_agent_graph(sp, 4, p_node=0.6, p_edge=0.5)
+    stack = M(close=[(0, 1)], above=[(0, 1)])
+    graph = agent_graph([(APART, C01), (APART, stack)])  # two kinds of first step, each with its SR
     picks, run = picks_on(graph, "zpd")
-    w, here = run.workers[0], graph.masks[0]
-    offered = sp.frontier_candidates(graph, here)
-    away = offered[offered != here]
-    assert len(away) >= 2
-    graph.sr = [0.5] * len(graph.sr)
-    first = picks.frontier_goal(graph, here, w)
-    target = int(away[-1])  # make every edge but those on one path to `target` nearly hopeless
-    path = gh.safest_path(graph, here, target, np.random.default_rng(0))
-    on_path = {graph.edge_class(u, v) for u, v in zip(path, path[1:], strict=False)}
-    graph.sr = [0.999 if c in on_path else 0.01 for c in range(len(graph.sr))]
-    if here in offered:  # where it stands is surest of all (1): leave it out of the comparison
-        offered = away
-    assert picks.pick(w, offered, picks.arrival(graph, here, offered)) == target
-    assert first is not None
+    w, close_edge, stack_edge = run.workers[0], graph.edge_class(APART, C01), graph.edge_class(APART, stack)
+    offered = picks.frontier_candidates(graph, APART, True)
+    assert {graph.edge_class(APART, int(c)) for c in offered} == {close_edge, stack_edge}
+
+    def frontier_kinds(sr_close: float, sr_stack: float) -> set[int]:
+        graph.sr[close_edge], graph.sr[stack_edge] = sr_close, sr_stack
+        goals = [picks.frontier_goal(graph, APART, w, elsewhere=True) for _ in range(30)]
+        return {graph.edge_class(APART, g) for g in goals}
+
+    assert frontier_kinds(0.9, 0.2) == {close_edge}  # the step it is surest of ...
+    assert frontier_kinds(0.2, 0.9) == {stack_edge}  # ... and, once the estimates turn, the other
 
 
 def renamed_classes(monkeypatch):
@@ -227,15 +231,77 @@ def test_no_signal_reads_a_class_table_renaming_the_evaluation_classes_changes_n
     assert run_after.sampler.partner_counts != run_before.sampler.partner_counts  # the classes were renamed
 
 
-def test_learner_picks_change_what_the_partner_proposes(tmp_path):
-    rows = {}
+class OnlyTheOffers:
+    """A social partner that offers the candidates it is given, and answers nothing else."""
+
+    def __init__(self, offers: dict):
+        self.offers = offers
+
+    def frontier_candidates(self, graph, current: int, elsewhere: bool = False) -> np.ndarray:
+        return self.offers[current, elsewhere]
+
+    def beyond_candidates(self, graph, config: int) -> np.ndarray:
+        return self.offers[config, "beyond"]
+
+    def __getattr__(self, name):
+        raise AssertionError(f"a pick read the partner's {name}: the oracle beyond the offered candidates")
+
+
+@pytest.mark.parametrize("signal", SIGNALS)
+def test_no_signal_reads_the_oracle_beyond_the_offered_candidates(signal):
+    # Renaming the classes catches a read keyed by class name; this, any other read of the partner or its
+    # oracle (stepping stones, neighbours, classes): the same picks when it can answer nothing but the offers.
+    sp = gh.SocialPartner(N)
+    graph = random_agent_graph(sp, 2, p_node=0.4, p_edge=0.3)
+    picks, run = picks_on(graph, signal)
+    here = graph.masks[:: max(1, graph.n_nodes // 8)]
+    offers = {(h, e): sp.frontier_candidates(graph, h, e) for h in here for e in (False, True)}
+    offers |= {(h, "beyond"): sp.beyond_candidates(graph, h) for h in here}
+
+    w = run.workers[0]  # zpd's critic reads where its worker stands
+    w.env.reset()
+
+    def all_picks() -> list:
+        w.rng = np.random.default_rng(0)
+        return [(picks.frontier_goal(graph, h, w, e), picks.beyond_goal(graph, h, w)) for h in here for e in (0, 1)]
+
+    with_the_oracle = all_picks()
+    picks.partner = OnlyTheOffers(offers)
+    assert all_picks() == with_the_oracle
+    assert sum(f is not None for f, _ in with_the_oracle) and sum(b is not None for _, b in with_the_oracle)
+
+
+def test_learner_picks_change_what_the_partner_proposes_toward_what_novelty_promises(tmp_path, monkeypatch):
+    # Each beyond goal proposed, scored as novelty promises (a config never visited first, then the pairs of
+    # facts no node holds together, brute force), against the best and the mean of what was offered.
+    proposed = []
+
+    def recorded(real):
+        def beyond_goal(self, graph, config: int, w):
+            offered = self.beyond_candidates(graph, config)
+            goal = real(self, graph, config, w)
+            if goal is not None:
+                score = {int(c): (int(c) not in graph.masks, brute_novelty(graph, int(c))) for c in offered}
+                proposed.append((score[goal], max(score.values()), sorted(score.values())))
+            return goal
+
+        return beyond_goal
+
+    monkeypatch.setattr(gh.SocialPartner, "beyond_goal", recorded(gh.SocialPartner.beyond_goal))
+    monkeypatch.setattr(lq.LearnerPicks, "beyond_goal", recorded(lq.LearnerPicks.beyond_goal))
+    rows, scores = {}, {}
     for signal in ("", "novelty"):
+        proposed.clear()
         flags = [*TINY, "--sp-ratio", "1", "--n-cycles", "4", "--seed", "2", "--learner-picks", signal]
         assert gh.main([*flags, "--runs-dir", str(tmp_path / (signal or "uniform"))]) == 0
         (folder,) = (tmp_path / (signal or "uniform")).iterdir()
         (rows[signal],) = csv.DictReader((folder / "progress.csv").open())
-    proposed = {s: [r[k] for k in r if k.startswith("sp_beyond_") and "_reached_" not in k] for s, r in rows.items()}
-    assert sum(map(float, proposed["novelty"])) > 0 and proposed[""] != proposed["novelty"]
+        scores[signal] = list(proposed)
+    logged = {s: [r[k] for k in r if k.startswith("sp_beyond_") and "_reached_" not in k] for s, r in rows.items()}
+    assert sum(map(float, logged["novelty"])) == len(scores["novelty"]) > 0 and logged[""] != logged["novelty"]
+    assert all(score == best for score, best, _ in scores["novelty"])  # always the most novel offered ...
+    assert any(score < best for score, best, _ in scores[""])  # ... where the uniform draw is not
+    assert any(score > min(offered) for score, _, offered in scores["novelty"])  # and a choice was made
 
 
 def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
@@ -263,6 +329,7 @@ def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
     [
         (["--learner-picks", "best"], "--learner-picks must be one of novelty, zpd"),
         (["--ask-progress", "edges"], "--ask-progress must be one of nodes, classes"),
+        (["--ask-progress", "classes"], "--ask-progress classes does nothing without --ask-after"),
         (["--learner-picks", "zpd", "--sp-ratio", "0"], "--learner-picks needs social cycles"),
         (["--learner-picks", "zpd", "--sp-ratio", "0.2", "--partner", "person"], "give one of them"),
     ],

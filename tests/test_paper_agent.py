@@ -596,3 +596,127 @@ def test_a_bad_flag_beside_paper_exits_2_before_anything_is_downloaded(served, t
         gh.main(["--init-from", "paper", "--init-prior-count", "0", "--runs-dir", str(tmp_path / "runs")])
     assert e.value.code == 2 and "--init-prior-count" in capsys.readouterr().err
     assert served.requests == [] and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("xdg_cache_home", ["unset", "empty"])
+def test_paper_without_xdg_cache_home_is_kept_in_dot_cache_in_the_home_folder(
+    served, tmp_path, monkeypatch, xdg_cache_home
+):
+    if xdg_cache_home == "unset":
+        monkeypatch.delenv("XDG_CACHE_HOME")
+    else:
+        monkeypatch.setenv("XDG_CACHE_HOME", "")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # Path.home()
+    path = tmp_path / "home" / ".cache" / "hme-gangstr" / "gangstr.pt"
+    assert plumbing.paper_file("--init-from") == str(path) and path.read_bytes() == served.data
+    assert not (tmp_path / "cache").exists()
+
+
+@pytest.fixture
+def socket_timeout():
+    """The process-wide socket timeout (socket.setdefaulttimeout) set to 7 s for the test, then put back."""
+    before = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(7.0)
+    yield 7.0
+    socket.setdefaulttimeout(before)
+
+
+@pytest.mark.parametrize("outcome", ["downloaded", "read from the cache", "wrong hash"])
+def test_paper_puts_the_process_wide_socket_timeout_back_as_it_was(served, monkeypatch, socket_timeout, outcome):
+    during, download = [], torch.hub.download_url_to_file
+
+    def recorded(*args, **kwargs):
+        during.append(socket.getdefaulttimeout())
+        download(*args, **kwargs)
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", recorded)
+    if outcome == "read from the cache":
+        served.cache.parent.mkdir(parents=True)
+        served.cache.write_bytes(served.data)
+    if outcome == "wrong hash":
+        monkeypatch.setattr(plumbing, "PAPER_SHA256", hashlib.sha256(b"the authors' file").hexdigest())
+        with pytest.raises(SystemExit):
+            plumbing.paper_file("--init-from")
+    else:
+        plumbing.paper_file("--init-from")
+    assert during == ([] if outcome == "read from the cache" else [plumbing.PAPER_TIMEOUT])
+    assert socket.getdefaulttimeout() == socket_timeout
+
+
+def test_a_ctrl_c_during_the_paper_download_leaves_the_cache_as_it_was_and_exits_as_an_interruption(
+    served, tmp_path, monkeypatch, capsys, socket_timeout
+):
+    def interrupted(url, dst, *args, **kwargs):
+        Path(f"{dst}.0123.partial").write_bytes(served.data[:100])  # half-way through
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", interrupted)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    argv = ["--eval-only", "--checkpoint", "paper", "--threads", "1", "--runs-dir", str(tmp_path / "runs")]
+    with pytest.raises(SystemExit) as e:
+        plumbing.run_main(lambda: gh.main(argv))
+    err = capsys.readouterr().err
+    assert e.value.code == 130 and err.strip() == "interrupted (nothing to save yet)", err
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
+    assert socket.getdefaulttimeout() == socket_timeout
+
+
+def another_process_puts(path: Path, data: bytes, after: float) -> threading.Timer:
+    """What the node's LOCAL_RANK 0 does under torchrun, `after` seconds from now: it makes the cache folder
+    and renames a whole file into place, as torch.hub does."""
+
+    def put():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(f"{path.name}.0123.partial")
+        partial.write_bytes(data)
+        partial.rename(path)
+
+    timer = threading.Timer(after, put)
+    timer.start()
+    return timer
+
+
+@pytest.mark.parametrize("local_rank", ["0", "1"])
+def test_under_torchrun_one_process_a_node_downloads_paper_and_the_others_wait_for_its_file(
+    served, monkeypatch, capsys, local_rank
+):
+    monkeypatch.setenv("LOCAL_RANK", local_rank)
+    monkeypatch.setattr(plumbing, "PAPER_WAIT", 10)
+    other = another_process_puts(served.cache, served.data, after=0.5) if local_rank == "1" else None
+    assert plumbing.paper_file("--init-from") == str(served.cache)
+    if other is not None:
+        other.join()
+    assert served.cache.read_bytes() == served.data
+    assert served.requests == ([] if local_rank == "1" else ["/hipstr/gangstr.pt"])
+    assert ("downloading" in capsys.readouterr().out) == (local_rank == "0")  # the downloader alone says so
+
+
+@pytest.mark.parametrize(
+    "other, says",
+    [
+        ("puts another file", "is not the authors' file"),
+        ("puts nothing in time", "TimeoutError: LOCAL_RANK 0 did not download it in 0.5 s"),
+    ],
+)
+def test_under_torchrun_a_waiting_process_exits_2_with_one_line_on_a_wrong_file_or_none_in_time_and_removes_nothing(
+    served, tmp_path, monkeypatch, capsys, other, says
+):
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    if other == "puts another file":
+        monkeypatch.setattr(plumbing, "PAPER_WAIT", 10)
+        timer = another_process_puts(served.cache, b"not the authors' file", after=0.3)
+    else:
+        monkeypatch.setattr(plumbing, "PAPER_WAIT", 0.5)
+        timer = another_process_puts(served.cache, served.data, after=3)  # too late
+    with pytest.raises(SystemExit) as e:
+        plumbing.paper_file("--init-from")
+    timer.cancel()
+    timer.join()
+    out, err = capsys.readouterr()
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert says in err and f"{plumbing.PAPER_URL} and put it at {served.cache}" in err, err
+    assert served.requests == [] and "downloading" not in out
+    if other == "puts another file":  # the other process's folder and file stay: the waiting one made neither
+        assert files_under(tmp_path / "cache") == {"hme-gangstr/gangstr.pt": b"not the authors' file"}
+    else:
+        assert not (tmp_path / "cache").exists()
