@@ -384,9 +384,9 @@ class SAC:
         self.acting_actor, self.acting_critic = speed.weight_view(self.actor), speed.weight_view(self.critic)
         # After --init-from (SPEC §10): Adam's rates scaled down (--init-lr-scale), reached by a warm-up (update)
         scale = args.init_lr_scale if args.init_from else 1.0
-        self.lrs = (args.lr_actor * scale, args.lr_critic * scale)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.lrs[0])
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.lrs[1])
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor * scale)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic * scale)
+        self.lrs = [g["lr"] for g in (*self.actor_opt.param_groups, *self.critic_opt.param_groups)]  # each group's
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
         # --compile: the losses as one torch.compile graph (forward and backward); eager is the reference.
@@ -435,9 +435,8 @@ class SAC:
         batch = self.to_tensors(np_batch)
         if self.args.init_from and self.n_updates < self.args.init_warmup:  # --init-warmup (0: none)
             scale = (self.n_updates + 1) / self.args.init_warmup
-            for opt, lr in zip((self.actor_opt, self.critic_opt), self.lrs, strict=True):
-                for group in opt.param_groups:
-                    group["lr"] = lr * scale
+            for group, lr in zip((*self.actor_opt.param_groups, *self.critic_opt.param_groups), self.lrs, strict=True):
+                group["lr"] = lr * scale
         critic_loss, actor_loss, target, stats = self.compute_losses(batch)
         self.last_batch, self.last_target = batch, target  # for goal samplers that learn from TD targets (VDS)
         self.actor_opt.zero_grad()

@@ -423,6 +423,23 @@ def test_after_init_from_the_warmup_ramps_to_the_learning_rates_times_init_lr_sc
     )
 
 
+def test_after_init_from_a_forks_parameter_groups_each_ramp_to_their_own_rate(monkeypatch):
+    adam = torch.optim.Adam
+
+    def forked_adam(params, lr):  # a fork's optimizer: its first tensor at 10x the rate, in a group of its own
+        params = list(params)
+        return adam([dict(params=params[:1], lr=lr * 10), dict(params=params[1:])], lr=lr)
+
+    monkeypatch.setattr(torch.optim, "Adam", forked_adam)
+    learner = learner_with_segments(4, init_from="gangstr.pt", init_lr_scale=0.5, init_warmup=2, lr_critic=2e-3)
+    opts, rng, rates = (learner.agent.actor_opt, learner.agent.critic_opt), [np.random.default_rng(1)], []
+    for _ in range(3):
+        learner.agent.update(learner.buffer.sample(8, rng, 0.8, "final"))
+        rates += [g["lr"] for opt in opts for g in opt.param_groups]
+    built = [5e-3, 0.5e-3, 10e-3, 1e-3]  # the fork's rates, times --init-lr-scale
+    assert rates == pytest.approx([r / 2 for r in built] + built + built, rel=1e-12)
+
+
 def test_without_init_from_the_learning_rates_are_never_touched():
     learner = learner_with_segments(4, init_lr_scale=0.5, init_warmup=4, init_learning_starts=50)  # ignored without
     learner.segments = 4
