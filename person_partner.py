@@ -14,8 +14,9 @@ agent stands (an untried neighbour). The agent then pursues the pick as it would
   recorded as a timeout), so an unattended run finishes. Ctrl-C and SIGTERM drop a pending question.
 - Safe by default: the server binds to 127.0.0.1, every request must carry the run's random token, on a
   loopback address the Host header must name the server (no DNS rebinding), and an answer must name the
-  waiting question and one of its candidates, in a small JSON body; anything else gets a 4xx and changes
-  nothing.
+  waiting question and one of its candidates, in a small JSON body; anything else is refused (a 4xx, or
+  501/505 for a method or an HTTP version it does not speak), in the page's JSON form, and changes nothing.
+  The statuses and the order of the checks: Handler's docstring and docs/SPEC.md §7.1.
 - picks.csv in the run folder records every question (PICK_COLUMNS); progress.csv counts the person's
   picks, skips and timeouts per epoch.
 Standard library only (http.server in a thread, zlib for the PNG frames), besides numpy, mujoco and
@@ -31,6 +32,7 @@ import ipaddress
 import json
 import math
 import os
+import re
 import secrets
 import struct
 import sys
@@ -335,9 +337,9 @@ class PersonPartner:
             return {}
 
     def take_answer(self, body: bytes):
-        """An answer from the page: {"question": id, "goal": mask or null}. Checked whole before it counts."""
+        """An answer from the page: {"question": id, "goal": mask or null}, in UTF-8. Checked whole before it counts."""
         try:
-            data = json.loads(body)
+            data = json.loads(body.decode("utf-8"))  # not json.loads(body), which would take UTF-16 and UTF-32 too
         except (ValueError, UnicodeDecodeError, RecursionError):
             raise Rejected(400, "the body is not JSON") from None
         if not isinstance(data, dict) or set(data) != {"question", "goal"}:
@@ -361,11 +363,40 @@ class PersonPartner:
         partner = self
 
         class Handler(http.server.BaseHTTPRequestHandler):
+            """One request per connection (HTTP/1.0), every reply with a status line, JSON but for the page and
+            its frames. Checked in this order, the first check that fails answers (SPEC §7.1):
+            414 a request line over 64 KiB; 505 HTTP/0.9 (no version, or major version 0) or HTTP/2 and above;
+            400 a request line that is not `METHOD target HTTP/x.y`; 431 over 100 headers or a line over 64 KiB;
+            501 a method other than GET, POST, PUT, DELETE, PATCH, OPTIONS, HEAD; 403 a foreign Host (on a
+            loopback address), then a wrong or missing token; 405 PUT ... HEAD, GET /answer, POST / or /state;
+            404 any other page, or a frame not kept; then a POST /answer: 415 not application/json; 411 no
+            Content-Length; 400 not one, or not in ASCII digits; 413 over MAX_BODY; 408 the body not whole
+            within `timeout`; 400 the body ends early, or is not {"question": <int>, "goal": <int or null>} in
+            UTF-8; 409 a question not waiting, or answered already; 422 a goal not offered; 200 the answer is
+            taken. 500: a failure of the server's own, for that request alone. A connection that sends nothing,
+            or not a whole request line and headers within `timeout`, is closed without a reply."""
+
             server_version = "person-partner"
             timeout = 15  # seconds a connection may keep a thread waiting for its request
 
             def log_message(self, *a):  # quiet: the run's console is the training's
                 pass
+
+            def parse_request(self):
+                # HTTP/0.9 is refused before its (absent) headers are awaited: its reply would have no status line
+                self.requestline = str(self.raw_requestline, "iso-8859-1").rstrip("\r\n")
+                words = self.requestline.split()
+                if len(words) == 2 or (len(words) > 2 and re.fullmatch(r"HTTP/0+\.[0-9]+", words[-1])):
+                    self.command = None
+                    self.send_error(505, "HTTP/0.9 is not served: send HTTP/1.0 or HTTP/1.1")
+                    return False
+                return super().parse_request()
+
+            def send_error(self, code, message=None, explain=None):
+                """The standard library's refusals (the request line, the version, the headers, the method) in
+                the page's JSON form, with a status line whatever version the request named."""
+                self.request_version, self.close_connection = "HTTP/1.0", True
+                self.reply(code, dict(error=(message or self.responses.get(code, ("refused",))[0])[:200]))
 
             def send(self, status: int, body: bytes, kind: str):
                 self.send_response(status)
@@ -421,18 +452,29 @@ class PersonPartner:
             def post(self, path: str):
                 if path != "/answer":
                     raise Rejected(404 if path not in ("/", "/state") else 405, f"nothing to POST at {path!r}")
-                if self.headers.get("Content-Type", "").split(";")[0].strip() != "application/json":
+                if self.headers.get("Content-Type", "").split(";")[0].strip(" \t").lower() != "application/json":
                     raise Rejected(415, "answers are application/json")
-                try:
-                    length = int(self.headers.get("Content-Length", ""))
-                except ValueError:
-                    raise Rejected(411, "Content-Length is missing or not a number") from None
-                if length < 0:
-                    raise Rejected(400, f"Content-Length {length} is negative")
-                if length > MAX_BODY:
-                    raise Rejected(413, f"the body is {length} bytes; an answer takes at most {MAX_BODY}")
-                partner.take_answer(self.rfile.read(length))
+                partner.take_answer(self.body())
                 self.reply(200, dict(ok=True))
+
+            def body(self) -> bytes:
+                """The body, whole: one Content-Length in digits, at most MAX_BODY, every byte within `timeout`."""
+                lengths = self.headers.get_all("Content-Length") or []
+                if not lengths:
+                    raise Rejected(411, "Content-Length is missing")
+                value = lengths[0].strip(" \t")
+                if len(lengths) > 1 or not (value.isascii() and value.isdigit()):
+                    raise Rejected(400, f"Content-Length must be one number of bytes, got {', '.join(lengths)[:40]!r}")
+                if len(value.lstrip("0")) > len(str(MAX_BODY)) or int(value) > MAX_BODY:  # no int() of 5,000 digits
+                    raise Rejected(413, f"the body is {value[:20]} bytes; an answer takes at most {MAX_BODY}")
+                length = int(value)
+                try:
+                    body = self.rfile.read(length)
+                except TimeoutError:
+                    raise Rejected(408, f"the body did not come within {self.timeout:g} s") from None
+                if len(body) < length:  # the client closed its side early: a cut answer is no answer
+                    raise Rejected(400, f"the body ended after {len(body)} of its {length} bytes")
+                return body
 
         return Handler
 

@@ -6,6 +6,7 @@ import csv
 import http.client
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -17,6 +18,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import fetch5_env
 import gangstr_hme as gh
@@ -207,6 +210,16 @@ def raw(a, head: str, body: bytes = b""):
     return int(text.split()[1]), text.split("\r\n\r\n", 1)[-1].encode()
 
 
+def with_lengths(a, q, values):
+    """A valid answer to q but for its Content-Length headers, values(n) for a body of n bytes; all sent, then
+    the connection's sending side closed (exchange, below)."""
+    body = json.dumps(dict(question=q, goal=None)).encode()
+    head = (f"POST /answer?token={a.token} HTTP/1.1\r\nHost: 127.0.0.1:{a.port}\r\nContent-Type: application/json\r\n"
+            + "".join(f"Content-Length: {v}\r\n" for v in values(len(body))))  # fmt: skip
+    status, _, reply = parsed(exchange(a.port, head.encode("latin-1") + b"\r\n" + body))
+    return status, reply
+
+
 BAD = {
     "wrong token": (lambda a, q: a.request("POST", "/answer", dict(question=q, goal=1), token="nope"), 403),
     "no token": (lambda a, q: a.request("POST", "/answer", dict(question=q, goal=1), token=None), 403),
@@ -246,6 +259,15 @@ BAD = {
     ),
     "no Host header": (lambda a, q: raw(a, "GET /state?token=TOKEN HTTP/1.0"), 403),
     "POST the state": (lambda a, q: a.request("POST", "/state", dict(question=q, goal=1)), 405),
+    "Content-Length past the body's end": (lambda a, q: with_lengths(a, q, lambda n: [n + 5]), 400),
+    "two Content-Lengths": (lambda a, q: with_lengths(a, q, lambda n: [n, n]), 400),
+    "Content-Length not a number": (lambda a, q: with_lengths(a, q, lambda n: [f"{n}.0"]), 400),
+    "Content-Length in other digits": (lambda a, q: with_lengths(a, q, lambda n: ["\N{SUPERSCRIPT TWO}"]), 400),
+    "Content-Length of 5,000 digits": (lambda a, q: with_lengths(a, q, lambda n: ["9" * 5000]), 413),
+    "a body in UTF-16": (
+        lambda a, q: a.request("POST", "/answer", json.dumps(dict(question=q, goal=None)).encode("utf-16")),
+        400,
+    ),
 }
 
 
@@ -307,6 +329,346 @@ def test_a_request_that_breaks_in_the_server_gets_a_500_and_the_run_goes_on(aski
     assert asking.request("POST", "/answer", dict(question=q["id"], goal=None))[0] == 200
     asking.thread.join(5)
     assert asking.result is None and not asking.thread.is_alive()
+
+
+# ------------------------------------------------------------------------------------------------
+# Every refusal in the page's JSON form, and random requests (SPEC §7.1: the statuses, the order)
+# ------------------------------------------------------------------------------------------------
+STATUSES = (200, 400, 403, 404, 405, 408, 409, 411, 413, 414, 415, 422, 431, 500, 501, 505)  # SPEC §7.1's list
+SECURITY = {"Cache-Control": "no-store", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer"}
+
+
+def exchange(port: int, data: bytes, keep_open: bool = False) -> bytes:
+    """`data` on a new connection, whose sending side is then closed (as by a client that said all it had
+    to say) unless keep_open; the whole reply, b"" for none. The timeout bounds a page that never answers."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as conn:
+        try:
+            conn.sendall(data)
+            if not keep_open:
+                conn.shutdown(socket.SHUT_WR)
+        except OSError:  # refused before all was read (a 414, a 431), the connection already closed
+            pass
+        reply = b""
+        try:
+            while chunk := conn.recv(65536):
+                reply += chunk
+        except ConnectionResetError:
+            pass
+    return reply
+
+
+def parsed(reply: bytes) -> tuple[int, dict, bytes]:
+    """A reply's status, headers and body, once checked to be in the page's form: a status line, the headers
+    every reply carries, a Content-Length that is the body's, and for a refusal a JSON body with its reason."""
+    head, _, body = reply.partition(b"\r\n\r\n")
+    first, *lines = head.decode("latin-1").split("\r\n")
+    assert re.fullmatch(r"HTTP/1\.0 [0-9]{3} .+", first), reply[:300]
+    status, headers = int(first.split()[1]), dict(line.split(": ", 1) for line in lines)
+    assert headers.items() >= SECURITY.items() and int(headers["Content-Length"]) == len(body), headers
+    if status != 200:
+        assert headers["Content-Type"] == "application/json" and json.loads(body)["error"], body
+    return status, headers, body
+
+
+REFUSED_BY_THE_PARSER = {  # what http.server itself refuses, before the page's own checks (HOST: the server's)
+    "an unknown method": ("BREW /state?token=TOKEN HTTP/1.1\r\nHost: HOST", 501),
+    "a lower-case method": ("get /state?token=TOKEN HTTP/1.1\r\nHost: HOST", 501),
+    "HTTP/2.0": ("GET /state?token=TOKEN HTTP/2.0\r\nHost: HOST", 505),
+    "HTTP/0.9, no version": ("GET /state?token=TOKEN", 505),
+    "HTTP/0.9 named": ("GET /state?token=TOKEN HTTP/0.9\r\nHost: HOST", 505),
+    "a version that is none": ("GET /state?token=TOKEN HTTP/1\r\nHost: HOST", 400),
+    "a request line of four words": ("GET /state?token=TOKEN x HTTP/1.1\r\nHost: HOST", 400),
+    "a request line of one word": ("GET", 400),
+    "a request line over 64 KiB": ("GET /state?token=TOKEN&x=" + "x" * 70_000 + " HTTP/1.1\r\nHost: HOST", 414),
+    "over 100 headers": ("GET /state?token=TOKEN HTTP/1.1\r\nHost: HOST" + "\r\nX-A: 1" * 101, 431),
+    "a header line over 64 KiB": ("GET /state?token=TOKEN HTTP/1.1\r\nHost: HOST\r\nX-A: " + "a" * 70_000, 431),
+}
+
+
+@pytest.mark.parametrize("name", list(REFUSED_BY_THE_PARSER))
+def test_a_request_the_http_parser_refuses_gets_the_pages_json_refusal_and_changes_nothing(asking, name):
+    q = asking.ask_beyond()
+    head, want = REFUSED_BY_THE_PARSER[name]
+    head = head.replace("TOKEN", asking.token).replace("HOST", f"127.0.0.1:{asking.port}")
+    status, _, body = parsed(exchange(asking.port, head.encode() + b"\r\n\r\n"))
+    assert status == want, body
+    assert asking.request("GET", "/state")[0] == 200  # still serving
+    assert asking.partner.answer is None and asking.partner.question is q and asking.picks() == []
+
+
+@pytest.mark.parametrize("kind", ["Application/JSON", "application/json; charset=utf-8"])
+def test_an_answers_content_type_is_application_json_in_any_case_with_parameters(asking, kind):
+    q = asking.ask_beyond()
+    answer = dict(question=q["id"], goal=None)
+    assert asking.request("POST", "/answer", answer, headers={"Content-Type": kind}) == (200, b'{"ok": true}')
+    asking.thread.join(5)
+    assert asking.result is None and asking.picks()[0]["by"] == "skipped"
+
+
+def test_a_body_that_never_comes_whole_gets_a_408_after_the_connections_timeout(asking, monkeypatch):
+    monkeypatch.setattr(asking.partner.server.RequestHandlerClass, "timeout", 0.3)
+    q = asking.ask_beyond()
+    body = json.dumps(dict(question=q["id"], goal=None)).encode()
+    head = (f"POST /answer?token={asking.token} HTTP/1.1\r\nHost: 127.0.0.1:{asking.port}\r\n"
+            f"Content-Type: application/json\r\nContent-Length: {len(body) + 1}\r\n\r\n")  # fmt: skip
+    start = time.monotonic()
+    status, _, reply = parsed(exchange(asking.port, head.encode() + body, keep_open=True))  # the last byte: never
+    assert status == 408 and time.monotonic() - start < 3, reply
+    assert asking.partner.answer is None and asking.partner.question is q and asking.picks() == []
+
+
+# --- random requests: a served one with up to three fields varied --------------------------------------------
+METHODS = ("GET", "POST", "PUT", "DELETE", "PATCH", "OPTIONS", "HEAD", "BREW", "get", "M-SEARCH", "TRACE", "CONNECT")
+PATHS = ("/", "/state", "/answer", "/admin", "/state/", "/answer/", "/frame/q1.png", "/frame/a1.png", "/frame/",
+         "*", "/STATE", "/%73tate", "/index.html", "/state;x", "/../state")  # fmt: skip
+PATH_CHARS = "abcdefghijklmnopqrstuvwxyzABCXYZ0123456789-._~%!$&'()*+,;=:@"  # no / ? # or space
+VERSIONS = {"HTTP/1.0": 0, "HTTP/1.1": 0, "HTTP/1.2": 0, "HTTP/2.0": 505, "HTTP/3.0": 505, "HTTP/0.9": 505,
+            "HTTP/00.9": 505, "HTTP/1": 400, "http/1.1": 400, "HTTP/1.x": 400, "HTTP/1.1.1": 400, "HTTPS/1.1": 400,
+            "": 0}  # the status the last word of a request line calls for ("": the line has no version)  # fmt: skip
+HOSTS = ("127.0.0.1:PORT", "localhost:PORT", None, "evil.example:PORT", "127.0.0.1", "127.0.0.1:OTHER",
+         "[::1]:PORT", "LOCALHOST:PORT")  # fmt: skip
+TOKENS = {  # how the token travels (t: the run's): the query's first non-empty one, else X-Token's
+    "in the query": (lambda t: (f"?token={t}", None), True),
+    "among other fields": (lambda t: (f"?a=1&token={t}&b=", None), True),
+    "percent-encoded": (lambda t: ("?token=" + "".join(f"%{ord(c):02X}" for c in t), None), True),
+    "in X-Token": (lambda t: ("", t), True),
+    "empty in the query, in X-Token": (lambda t: ("?token=", t), True),
+    "the query's over a wrong X-Token": (lambda t: (f"?token={t}", "nope"), True),
+    "missing": (lambda t: ("", None), False),
+    "wrong": (lambda t: ("?token=nope", None), False),
+    "cut short": (lambda t: (f"?token={t[:-1]}", None), False),
+    "wrong, then right": (lambda t: (f"?token=nope&token={t}", None), False),
+    "wrong in the query, right in X-Token": (lambda t: ("?token=nope", t), False),
+    "wrong in X-Token": (lambda t: ("", "nope"), False),
+}
+CONTENT_TYPES = {"application/json": True, "application/json; charset=utf-8": True, "Application/JSON": True,
+                 None: False, "": False, "text/plain": False, "application/jsonp": False,
+                 "application/x-www-form-urlencoded": False}  # fmt: skip
+LENGTHS = {  # Content-Length headers, from the body's length n and a number k in [1, 60]
+    "exact": lambda n, k: [str(n)],
+    "leading zeros": lambda n, k: [f"00{n}"],
+    "spaces around": lambda n, k: [f"{n}  "],
+    "missing": lambda n, k: [],
+    "empty": lambda n, k: [""],
+    "a word": lambda n, k: ["twelve"],
+    "signed": lambda n, k: [f"+{n}"],
+    "negative": lambda n, k: [f"-{n}"],
+    "a decimal": lambda n, k: [f"{n}.0"],
+    "a superscript digit": lambda n, k: ["\N{SUPERSCRIPT TWO}"],
+    "an underscore": lambda n, k: [f"1_{n}"],
+    "twice": lambda n, k: [str(n), str(n)],
+    "two different": lambda n, k: [str(n), str(n + k)],
+    "5,000 digits": lambda n, k: ["9" * 5000],
+    "over the limit": lambda n, k: ["1025"],
+    "too long": lambda n, k: [str(n + k)],
+    "too short": lambda n, k: [str(max(0, n - k))],
+}
+BODIES = ("a pick", "no goal", "a pick, padded", "a pick, then junk", "a pick in UTF-16", "a stale question",
+          "another question", "a goal maybe offered", "the goal as text", "the goal as a float", "the goal NaN",
+          "the question true", "an extra field", "no goal field", "a list", "deeply nested", "empty",
+          "random bytes")  # fmt: skip
+
+
+def vary_body(choose, number):
+    kind = choose(BODIES)
+    if kind == "random bytes":
+        return kind, bytes(number(0, 255) for _ in range(number(0, 30)))
+    return kind, number(0, 1100)
+
+
+VARY = {  # a field of a request: a random value for it (the answer's first: hypothesis favours the first)
+    "body": vary_body,
+    "length": lambda choose, number: (choose(tuple(LENGTHS)), number(1, 60)),
+    "token": lambda choose, number: choose(tuple(TOKENS)),
+    "content type": lambda choose, number: choose(tuple(CONTENT_TYPES)),
+    "host": lambda choose, number: choose(HOSTS),
+    "method": lambda choose, number: choose(METHODS),
+    "path": lambda choose, number: choose(PATHS) if number(0, 2) else "/" + "".join(
+        choose(PATH_CHARS) for _ in range(number(1, 12))),
+    "version": lambda choose, number: choose(tuple(VERSIONS)),
+    "extra word": lambda choose, number: choose(("x", "HTTP/1.1", "HTTP/2.0")),
+    "keep open": lambda choose, number: True,
+    "junk headers": lambda choose, number: [
+        ("X-Junk-" + "".join(choose(PATH_CHARS[:26]) for _ in range(number(1, 6))),
+         "".join(chr(number(32, 126)) for _ in range(number(0, 20)))) for _ in range(number(1, 4))],
+    "a line that is no header": lambda choose, number: choose(("no colon here", "{}", "GET / HTTP/1.1")),
+    "nothing sent": lambda choose, number: choose((b"", b"\r\n")),
+    "long line": lambda choose, number: True,
+    "over 100 headers": lambda choose, number: True,
+    "a long header": lambda choose, number: True,
+}  # fmt: skip
+FIELDS = (*VARY, "body", "body", "body", "body", "length", "length", "token", "method", "version")  # weights
+SERVED = (  # requests the page serves, before any field is varied
+    dict(method="GET", path="/", body=("none", 0), length=("missing", 1), **{"content type": None}),
+    dict(method="GET", path="/state", body=("none", 0), length=("missing", 1), **{"content type": None}),
+    dict(method="POST", path="/answer", body=("a pick", 0)),
+    dict(method="POST", path="/answer", body=("a pick", 1)),
+    dict(method="POST", path="/answer", body=("no goal", 0)),
+)
+DEFAULTS = {"version": "HTTP/1.1", "extra word": None, "long line": False, "host": "127.0.0.1:PORT",
+            "token": "in the query", "content type": "application/json", "length": ("exact", 1), "keep open": False,
+            "junk headers": [], "over 100 headers": False, "a long header": False, "a line that is no header": None,
+            "nothing sent": None}  # fmt: skip
+
+
+def random_request(choose, number) -> dict:
+    """A request to the page: a served one, with up to three of its fields varied (listed in "varied").
+    `choose(options)` and `number(low, high)` draw: hypothesis's in the test, random's in the benchmark."""
+    request = DEFAULTS | choose(SERVED) | {"varied": []}
+    for _ in range(number(0, 3)):
+        field = choose(FIELDS)
+        request[field] = VARY[field](choose, number)
+        request["varied"].append(field)
+    return request
+
+
+def answer_body(kind: str, m, q: dict) -> bytes:
+    """The body of kind `kind` (BODIES) for the waiting question q; m: a number (or the random bytes)."""
+    if kind == "random bytes":
+        return m
+    qid, offered = q["id"], [c["mask"] for c in q["candidates"]]
+    pick = offered[m % len(offered)]
+    text = json.dumps(dict(question=qid, goal=pick))
+    bodies = {"a pick": text, "no goal": json.dumps(dict(question=qid, goal=None)), "a pick, padded": text + " " * m,
+              "a pick, then junk": text + "x", "a stale question": json.dumps(dict(question=qid - 1, goal=pick)),
+              "another question": json.dumps(dict(question=qid + 1 + m, goal=pick)),
+              "a goal maybe offered": json.dumps(dict(question=qid, goal=m - 3)),
+              "the goal as text": json.dumps(dict(question=qid, goal=str(pick))),
+              "the goal as a float": json.dumps(dict(question=qid, goal=float(pick))),
+              "the goal NaN": f'{{"question": {qid}, "goal": NaN}}',
+              "the question true": json.dumps(dict(question=True, goal=pick)),
+              "an extra field": json.dumps(dict(question=qid, goal=pick, by="me")),
+              "no goal field": json.dumps(dict(question=qid)), "a list": json.dumps([qid, pick]),
+              "deeply nested": "[" * 1000, "empty": "", "none": ""}  # fmt: skip
+    return text.encode("utf-16") if kind == "a pick in UTF-16" else bodies[kind].encode()
+
+
+def on_the_wire(request: dict, a: Asking, q: dict) -> tuple[str, list[str], bytes]:
+    """The request line, the header lines and the body that `request` sends."""
+    query, x_token = TOKENS[request["token"]][0](a.token)
+    path = request["path"] + ("x" * 70_000 if request["long line"] else "")
+    words = [request["method"], path + query, request["extra word"], request["version"]]
+    host = request["host"] and request["host"].replace("PORT", str(a.port)).replace("OTHER", str(a.port + 1))
+    body = answer_body(*request["body"], q)
+    lines = [request["a line that is no header"], host and f"Host: {host}", x_token and f"X-Token: {x_token}",
+             request["content type"] is not None and f"Content-Type: {request['content type']}",
+             *(f"Content-Length: {v}" for v in LENGTHS[request["length"][0]](len(body), request["length"][1])),
+             *(f"{name}: {value}" for name, value in request["junk headers"]),
+             *(["X-Many: 1"] * 101 if request["over 100 headers"] else []),
+             "X-Long: " + "a" * 70_000 if request["a long header"] else None]  # fmt: skip
+    return " ".join(w for w in words if w), [h for h in lines if h], body
+
+
+def expected(request: dict, line: str, lines: list[str], body: bytes, port: int, q: dict):
+    """What SPEC §7.1 says the page answers: the status of the first check that fails, or 200 (None: no reply),
+    and the answer the page takes (a dict) or None."""
+    if request["nothing sent"] is not None:
+        return None, None  # no request line
+    if len(line) + 2 > 65536:
+        return 414, None
+    words = line.split(" ")
+    if len(words) == 2:
+        return 505, None  # HTTP/0.9
+    if VERSIONS.get(words[-1], 400):
+        return VERSIONS.get(words[-1], 400), None
+    if len(words) != 3:
+        return 400, None
+    if len(lines) > 100 or max(map(len, lines), default=0) + 2 > 65536:
+        return 431, None
+    method, path = words[0], words[1].split("?")[0]
+    if method not in ("GET", "POST", "PUT", "DELETE", "PATCH", "OPTIONS", "HEAD"):
+        return 501, None
+    headers = {}  # the values of each header, up to the first line that is no header (which ends them)
+    for h in lines:
+        if ": " not in h:
+            break
+        headers.setdefault(h.split(": ")[0].lower(), []).append(h.split(": ", 1)[1])
+    if headers.get("host", [""])[0] not in (f"127.0.0.1:{port}", f"localhost:{port}"):
+        return 403, None
+    if not TOKENS[request["token"]][1]:
+        return 403, None
+    if method not in ("GET", "POST"):
+        return 405, None
+    if method == "GET":
+        return (200 if path in ("/", "/state") else 405 if path == "/answer" else 404), None
+    if path != "/answer":
+        return (405 if path in ("/", "/state") else 404), None
+    if not CONTENT_TYPES[request["content type"]]:
+        return 415, None
+    lengths = headers.get("content-length", [])
+    if not lengths:
+        return 411, None
+    if len(lengths) > 1 or not re.fullmatch("[0-9]+", lengths[0].strip(" ")):
+        return 400, None
+    if len(lengths[0].strip(" ")) > 10 or int(lengths[0]) > 1024:  # SPEC: at most 1,024 bytes
+        return 413, None
+    n = int(lengths[0])
+    if len(body) < n:
+        return (408 if request["keep open"] else 400), None
+    try:
+        data = json.loads(body[:n].decode("utf-8"))
+    except (ValueError, RecursionError):
+        return 400, None
+    if not isinstance(data, dict) or sorted(data) != ["goal", "question"]:
+        return 400, None
+    if type(data["question"]) is not int or not (data["goal"] is None or type(data["goal"]) is int):
+        return 400, None
+    if data["question"] != q["id"]:
+        return 409, None
+    if data["goal"] is not None and data["goal"] not in [c["mask"] for c in q["candidates"]]:
+        return 422, None
+    return 200, data
+
+
+def play(a: Asking, request: dict) -> int | None:
+    """Sends `request` while a question waits and checks the reply against SPEC §7.1, that the page still
+    serves, and that picks.csv gains a row for an answer taken only, exactly one (then a new question waits).
+    Returns the status (None: no reply)."""
+    if a.partner.question is None:  # taken by a request before, against the rules (reported there): a new one
+        a.thread.join(5)
+        a.ask_beyond()
+    q, before = a.partner.question, a.picks()
+    line, lines, body = on_the_wire(request, a, q)
+    want, answer = expected(request, line, lines, body, a.port, q)
+    data = request["nothing sent"]
+    if data is None:
+        data = (line + "\r\n" + "".join(h + "\r\n" for h in lines) + "\r\n").encode("latin-1") + body
+    reply = exchange(a.port, data, keep_open=request["keep open"])
+    status = parsed(reply)[0] if reply else None
+    assert status == want and status in (*STATUSES, None), (status, want, line[:200], lines[:6], body[:200])
+    assert a.request("GET", "/state")[0] == 200  # still serving
+    if answer is None:
+        assert a.partner.answer is None and a.partner.question is q and a.thread.is_alive()
+        assert a.picks() == before
+        return status
+    a.thread.join(5)
+    assert a.result == answer["goal"]  # the goal the agent is given
+    if a.result is not None:
+        a.partner.outcome(a.worker, a.result, True)
+    rows = a.picks()
+    picked, by = ("", "skipped") if a.result is None else (str(a.result), "person")
+    assert len(rows) == len(before) + 1 and rows[:-1] == before  # one row more, for this question
+    assert (rows[-1]["question"], rows[-1]["picked"], rows[-1]["by"]) == (str(q["id"]), picked, by)
+    a.ask_beyond()
+    return status
+
+
+def test_random_requests_get_the_status_the_spec_says_and_only_a_valid_answer_is_recorded_once(asking, monkeypatch):
+    monkeypatch.setattr(asking.partner, "frame", lambda w: None)  # no pictures (fast questions; every frame a 404)
+    monkeypatch.setattr(asking.partner.args, "person_timeout", 600.0)  # no question times out meanwhile
+    monkeypatch.setattr(asking.partner.server.RequestHandlerClass, "timeout", 0.5)  # for "keep open"
+    asking.ask_beyond()
+    seen = Counter()
+
+    @settings(max_examples=300, deadline=None, derandomize=True)  # the same requests every run
+    @given(data=st.data())
+    def one_request(data):
+        request = random_request(lambda options: data.draw(st.sampled_from(options)),
+                                 lambda low, high: data.draw(st.integers(low, high)))  # fmt: skip
+        seen[play(asking, request)] += 1
+
+    one_request()
+    assert asking.partner.asked > 20 and len(seen) >= 10, seen  # answers taken (each: a new question), refusals
 
 
 # ------------------------------------------------------------------------------------------------
