@@ -1199,12 +1199,15 @@ class GoalSampler(Sampler):
 
     def state_dict(self) -> dict:
         pairs = torch.tensor(self.internalization_buffer, dtype=torch.int64).reshape(-1, 2)
-        return dict(internalization=pairs) | (dict(query=self.query.state_dict()) if self.query else {})
+        return (dict(internalization=pairs) | (dict(query=self.query.state_dict()) if self.query else {})
+                | (dict(person=self.person.state_dict()) if self.person else {}))  # fmt: skip
 
     def load_state_dict(self, s: dict):
         self.internalization_buffer = merge_pairs([], [tuple(p) for p in s["internalization"].tolist()])
         if self.query is not None and "query" in s:  # one written before the learner could ask has none
             self.query.load_state_dict(s["query"])
+        if self.person is not None and "person" in s:  # one written before questions were checkpointed has none
+            self.person.load_state_dict(s["person"])
 
 
 STRATEGIES = ("frontier-and-beyond", "frontier", "beyond")
@@ -1445,7 +1448,8 @@ def train_loop(run: Run, out: plumbing.RunFolder) -> int:
     (or during a one-process evaluation) with a checkpoint that --resume continues exactly (plumbing.Stopper)."""
     while run.epoch < run.args.n_epochs:
         while run.cycle < run.args.n_cycles:
-            one_cycle(run)
+            if not out.cycle(run, one_cycle):  # a stop while a person's question waits: the cycle given up
+                return out.stop(run)
             plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,}")  # then the critic loss, or no update
             if out.stop_requested():
                 return out.stop(run)

@@ -1230,7 +1230,8 @@ def train_loop(run: Run, out: plumbing.RunFolder) -> int:
     (or during a one-process evaluation) with a checkpoint that --resume continues exactly (plumbing.Stopper)."""
     while run.epoch < run.args.n_epochs:
         while run.cycle < run.args.n_cycles:
-            one_cycle(run)
+            if not out.cycle(run, one_cycle):  # a stop while a person's question waits: the cycle given up
+                return out.stop(run)
             plumbing.cycle_progress(run, f"nodes {run.learner.graph.n_nodes:,}")  # then the critic loss, or no update
             if out.stop_requested():
                 return out.stop(run)

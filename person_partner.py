@@ -11,7 +11,8 @@ agent stands (an untried neighbour). The agent then pursues the pick as it would
   pyramids, blocks close together) with its class, "no goal this time"; then the outcome and the frame
   after; between questions the run's state. It polls the run, so it may be opened late or reloaded.
 - Never hangs: with no answer within --person-timeout seconds the oracle's uniform draw is taken (and
-  recorded as a timeout), so an unattended run finishes. Ctrl-C and SIGTERM drop a pending question.
+  recorded as a timeout), so an unattended run finishes. Ctrl-C and SIGTERM drop a pending question: the run
+  gives up that cycle, its checkpoint is the state before it, and --resume asks the question again.
 - Safe by default: the server binds to 127.0.0.1, every request must carry the run's random token, on a
   loopback address the Host header must name the server (no DNS rebinding), and an answer must name the
   waiting question and one of its candidates, in a small JSON body; anything else is refused (a 4xx, or
@@ -116,6 +117,7 @@ class PersonPartner:
         self.open_rows: dict[int, dict] = {}  # worker -> its pick waiting for the outcome
         self.renderers, self.render_problem = {}, None
         self.folder, self.picks, self.stopping = None, None, lambda: False
+        self.resumed_at: int | None = None  # the questions asked when the checkpoint --resume continues was saved
         try:  # bound now, before the run folder exists: a port in use exits 2 with nothing written
             self.server = http.server.ThreadingHTTPServer((args.person_host, args.person_port), self.handler())
         except OSError as e:
@@ -145,17 +147,26 @@ class PersonPartner:
 
     # --- the run's side (its main thread) ---------------------------------------------------------
     def open(self, folder: Path, stopping):
-        """Serve the page (its address printed on one line) and append to the folder's picks.csv."""
+        """Serve the page (its address printed on one line) and append to the folder's picks.csv. A resumed
+        run's picks.csv is first cut back to the questions its checkpoint had asked: those asked since (lost
+        to a kill -9, or in the cycle a stop gave up) are asked again, under the same numbers."""
         self.folder, self.stopping = Path(folder), stopping
-        new = not (self.folder / "picks.csv").exists()
-        if not new:  # a resumed run: its questions are numbered on from the file's
-            with (self.folder / "picks.csv").open(newline="") as f:
-                self.asked = max((int(r["question"]) for r in csv.DictReader(f) if r["question"].isdigit()), default=0)
-        self.picks = (self.folder / "picks.csv").open("a", newline="")
+        path, rows = self.folder / "picks.csv", []
+        if path.exists():
+            with path.open(newline="") as f:
+                rows = list(csv.DictReader(f))
+        if self.resumed_at is not None:
+            rows = [r for r in rows if r["question"].isdigit() and int(r["question"]) <= self.resumed_at]
+            self.asked = self.resumed_at
+        else:  # a new run, or one resumed from a checkpoint written before the questions were checkpointed
+            self.asked = max((int(r["question"]) for r in rows if r["question"].isdigit()), default=0)
+        with (tmp := path.with_name("picks.csv.tmp")).open("w", newline="") as f:  # replaced whole, or not at all
+            writer = csv.DictWriter(f, fieldnames=PICK_COLUMNS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, path)
+        self.picks = path.open("a", newline="")
         self.writer = csv.DictWriter(self.picks, fieldnames=PICK_COLUMNS)
-        if new:
-            self.writer.writeheader()
-            self.picks.flush()
         self.thread = threading.Thread(target=self.server.serve_forever, name="person-partner", daemon=True)
         self.thread.start()
         self.publish(None)
@@ -166,6 +177,13 @@ class PersonPartner:
         if not self.loopback():
             print(f"person partner: the page is served on {host}, beyond this machine: anyone with the "
                   "address above can answer", file=sys.stderr, flush=True)  # fmt: skip
+
+    def state_dict(self) -> dict:
+        """Its checkpoint entry (in the goal sampler's): the questions asked so far."""
+        return dict(asked=self.asked)
+
+    def load_state_dict(self, s: dict):
+        self.resumed_at = int(s["asked"])  # open() cuts picks.csv back to them
 
     def close(self):
         for w in list(self.open_rows):
@@ -189,7 +207,8 @@ class PersonPartner:
 
     def ask(self, w, kind: str, here: int, candidates: np.ndarray, graph) -> int | None:
         """Ask the page which candidate to propose, and wait: the person's pick, None for "no goal this
-        time", or, with no answer in time (or a stop requested), the oracle's uniform draw."""
+        time", or, with no answer in time, the oracle's uniform draw. A stop requested before an answer raises
+        KeyboardInterrupt: the run gives up the cycle (plumbing.RunFolder.cycle) and --resume asks again."""
         if len(candidates) == 0:
             return None  # nothing to propose: nothing to ask
         if w.index in self.open_rows:
@@ -216,6 +235,7 @@ class PersonPartner:
             picked, by = answered[1], "person" if answered[1] is not None else "skipped"
         else:
             picked, by = self.partner.choose(w, candidates), "dropped" if self.stopping() else "timeout"
+        picked = None if by == "dropped" else picked  # a stop's: no goal pursued, the cycle given up
         with self.lock:
             self.tally[by] += 1
         if by != "dropped":  # a stop's: in picks.csv only
@@ -229,6 +249,8 @@ class PersonPartner:
         if picked is None:
             self.write(row)
             self.show_last(row, None)
+            if by == "dropped":
+                raise KeyboardInterrupt  # the checkpoint is the state before the cycle: --resume asks this again
         else:
             self.open_rows[w.index] = row
         return picked

@@ -1060,6 +1060,7 @@ class RunFolder:
         self.checkpoint = self.dir / "checkpoint.pt"
         self.stopper = Stopper(self.dir / "checkpoint.pt.tmp")
         self.saved_at, self.before_evaluation = None, None  # (epoch, cycle) the checkpoint holds; see evaluate
+        self.before_cycle = None  # see cycle
         device = run.learner.agent.device
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
         self.sampler = run.sampler
@@ -1076,6 +1077,21 @@ class RunFolder:
     def stop_requested(self) -> bool:
         """Whether Ctrl-C or SIGTERM reached any process: all stop at the same cycle boundary."""
         return self.stopper.agreed()
+
+    def cycle(self, run, one_cycle) -> bool:
+        """one_cycle(run); False if a stop request gave it up (KeyboardInterrupt: a question of the goal
+        sampler's person left unanswered, person_partner.py): the checkpoint stop() saves is then the state
+        from before the cycle, and --resume runs the cycle again. One process only, as a person partner is."""
+        waits = world() == 1 and getattr(run.sampler, "person", None) is not None
+        self.before_cycle = save_state(run) if waits else None  # cheap: views (the cycle asks before it learns)
+        try:
+            one_cycle(run)
+        except KeyboardInterrupt:
+            if self.before_cycle is None:
+                raise
+            return False
+        self.before_cycle = None
+        return True
 
     def evaluate(self, run, evaluate) -> dict | None:
         """evaluate(run), timed for the epoch's row. In one process a stop request ends it at once: None,
@@ -1111,7 +1127,7 @@ class RunFolder:
         or the state before an evaluation the request interrupted; nothing if the last checkpoint holds it)
         and says how to resume; exit code 130."""
         if rank() == 0:
-            state = self.before_evaluation
+            state = self.before_evaluation if self.before_evaluation is not None else self.before_cycle
             if state is None and self.saved_at != (run.epoch, run.cycle):
                 state = save_state(run)
             if state is not None:
