@@ -208,11 +208,11 @@ class PersonPartner:
     def ask(self, w, kind: str, here: int, candidates: np.ndarray, graph) -> int | None:
         """Ask the page which candidate to propose, and wait: the person's pick, None for "no goal this
         time", or, with no answer in time, the oracle's uniform draw. A stop requested before an answer raises
-        KeyboardInterrupt: the run gives up the cycle (plumbing.RunFolder.cycle) and --resume asks again."""
+        plumbing.CycleGivenUp: the run gives up the cycle (plumbing.RunFolder.cycle) and --resume asks again."""
+        if w.index in self.open_rows:  # its previous pick was never pursued: written now, before a checkpoint
+            self.write(self.open_rows.pop(w.index))
         if len(candidates) == 0:
             return None  # nothing to propose: nothing to ask
-        if w.index in self.open_rows:
-            self.write(self.open_rows.pop(w.index))  # its previous pick was never pursued
         self.publish(graph)
         epoch, cycle = self.clock()
         views = [config_view(int(m), self.n_blocks, self.partner.oracle) for m in candidates]
@@ -250,7 +250,7 @@ class PersonPartner:
             self.write(row)
             self.show_last(row, None)
             if by == "dropped":
-                raise KeyboardInterrupt  # the checkpoint is the state before the cycle: --resume asks this again
+                raise plumbing.CycleGivenUp  # the checkpoint: the state before the cycle; --resume asks again
         else:
             self.open_rows[w.index] = row
         return picked
@@ -392,8 +392,8 @@ class PersonPartner:
             501 a method other than GET, POST, PUT, DELETE, PATCH, OPTIONS, HEAD; 403 a foreign Host (on a
             loopback address), then a wrong or missing token; 405 PUT ... HEAD, GET /answer, POST / or /state;
             404 any other page, or a frame not kept; then a POST /answer: 415 not application/json; 411 no
-            Content-Length; 400 not one, or not in ASCII digits; 413 over MAX_BODY; 408 the body not whole
-            within `timeout`; 400 the body ends early, or is not {"question": <int>, "goal": <int or null>} in
+            Content-Length; 400 not one, or not in ASCII digits; 413 over MAX_BODY; 408 no byte of the body
+            for `timeout` s (per read); 400 the body ends early, or is not {"question": <int>, "goal": <int or null>} in
             UTF-8; 409 a question not waiting, or answered already; 422 a goal not offered; 200 the answer is
             taken. 500: a failure of the server's own, for that request alone. A connection that sends nothing,
             or not a whole request line and headers within `timeout`, is closed without a reply."""
@@ -493,7 +493,7 @@ class PersonPartner:
                 try:
                     body = self.rfile.read(length)
                 except TimeoutError:
-                    raise Rejected(408, f"the body did not come within {self.timeout:g} s") from None
+                    raise Rejected(408, f"no byte of the body for {self.timeout:g} s") from None
                 if len(body) < length:  # the client closed its side early: a cut answer is no answer
                     raise Rejected(400, f"the body ended after {len(body)} of its {length} bytes")
                 return body

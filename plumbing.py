@@ -421,8 +421,14 @@ def load_state(run, s: dict):
     run.tally, learner.plan_seconds = so_far["tally"], so_far["plan_seconds"]
     run.sampler.stats = collections.Counter(so_far["stats"])
     run.rows = s["rows"]
+    fused = {name: [g.get("fused") for g in getattr(agent, name).param_groups] for name in ("actor_opt", "critic_opt")}
     for name in NETWORKS:
         getattr(agent, name).load_state_dict(s[name])
+    for name, flags in fused.items():  # Adam steps as this run says (--plain or not, speed.fuse_adams), not as
+        opt = getattr(agent, name)  # the checkpoint's did: each group's flag back, its step counts moved to match
+        for group, flag in zip(opt.param_groups, flags, strict=True):
+            group["fused"] = flag
+        opt.load_state_dict(opt.state_dict())
     agent.normalizer.sum[:], agent.normalizer.sumsq[:], agent.normalizer.count = 0.0, 0.0, 0
     agent.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
     learner.graph.load_state_dict(s["graph"])
@@ -646,13 +652,14 @@ PAPER_WAIT = 300  # seconds a torchrun process waits for its node's LOCAL_RANK 0
 def paper_file(flag: str) -> str:
     """The authors' file in $XDG_CACHE_HOME (or ~/.cache)/hme-gangstr/, downloaded the first time (torch.hub:
     the hash checked, the file renamed into place once whole, a progress bar on a terminal); or exit 2 with one
-    line, the cache as it was (after a Ctrl-C too, which then goes on as an interruption). Under torchrun the
+    line, the cache as it was (after a Ctrl-C or SIGTERM too, which then goes on as an interruption). Under torchrun the
     command line is read before the processes meet: one process a node downloads (LOCAL_RANK 0); the others
     wait up to PAPER_WAIT seconds for its file, and check it themselves (if it fails, torchrun ends them)."""
     path = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hme-gangstr" / "gangstr.pt"
     downloads = int(os.environ.get("LOCAL_RANK", "0")) == 0
     made = next((p for p in reversed(path.parents) if not p.exists()), None) if downloads else None  # to remove
     timeout = socket.getdefaulttimeout()
+    term = signal.signal(signal.SIGTERM, interrupt)  # a scheduler's stop, before any Stopper: as a Ctrl-C
     try:
         if downloads and not path.is_file():
             progress(f"{flag} paper: downloading the authors' agent (1.2 MB) to {path}", final=True)
@@ -671,13 +678,18 @@ def paper_file(flag: str) -> str:
         if made is not None:
             shutil.rmtree(made, ignore_errors=True)
         if not isinstance(e, Exception):
-            raise  # a Ctrl-C: run_main says so and exits 130
+            raise  # a Ctrl-C or SIGTERM: run_main says so and exits 130
         print(f"error: {flag} paper: {type(e).__name__}: {' '.join(str(e).split())}; download {PAPER_URL} and put "
               f"it at {path}", file=sys.stderr)  # fmt: skip
         sys.exit(2)
     finally:
         socket.setdefaulttimeout(timeout)
+        signal.signal(signal.SIGTERM, term)
     return str(path)
+
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 # ------------------------------------------------------------------------------------------------
@@ -942,6 +954,11 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
 # ------------------------------------------------------------------------------------------------
 # Interruptions (plumbing): stop at a cycle boundary, so that a resumed run is the uninterrupted one
 # ------------------------------------------------------------------------------------------------
+class CycleGivenUp(Exception):  # noqa: N818 (not an error: the run stops as a stop request asked)
+    """Raised by a goal sampler's cycle(w), before the cycle's segments are learnt from, when a stop request
+    ends a wait (a person's answer): RunFolder.cycle checkpoints the state from before that cycle."""
+
+
 class Stopper:
     """Ctrl-C (SIGINT) or SIGTERM asks the run to stop at the next cycle boundary, where a checkpoint
     holds everything the rest of the run depends on. During an evaluation (one process) it stops at
@@ -1079,14 +1096,15 @@ class RunFolder:
         return self.stopper.agreed()
 
     def cycle(self, run, one_cycle) -> bool:
-        """one_cycle(run); False if a stop request gave it up (KeyboardInterrupt: a question of the goal
-        sampler's person left unanswered, person_partner.py): the checkpoint stop() saves is then the state
-        from before the cycle, and --resume runs the cycle again. One process only, as a person partner is."""
-        waits = world() == 1 and getattr(run.sampler, "person", None) is not None
-        self.before_cycle = save_state(run) if waits else None  # cheap: views (the cycle asks before it learns)
+        """one_cycle(run); False if the goal sampler gave it up (CycleGivenUp: a stop request while it waited,
+        for a person's answer, person_partner.py): the checkpoint stop() saves is then the state from before
+        the cycle, and --resume runs the cycle again. Only for a sampler that says it may (its gives_up_cycles),
+        in one process, as a person partner is."""
+        gives_up = world() == 1 and run.sampler.gives_up_cycles
+        self.before_cycle = save_state(run) if gives_up else None  # cheap: views (it gives up before learning)
         try:
             one_cycle(run)
-        except KeyboardInterrupt:
+        except CycleGivenUp:
             if self.before_cycle is None:
                 raise
             return False

@@ -897,11 +897,15 @@ class Sampler:
         args, counters, epoch_so_far, rows, actor, critic, critic_target, actor_opt, critic_opt, normalizer,
         graph, encountered, rng, env_rng, buffer (nor format). Values that torch.load(weights_only=True)
         accepts: tensors, Python numbers, str, bool, None, and lists, tuples and dicts of them (no numpy).
-        state_dict is called at cycle boundaries only, after after_cycle (the epoch's checkpoint, a stop's);
-        load_state_dict on --resume, after the Learner's own state: its graph comes back with its nodes in
-        their saved order, so a draw over nodes by index (as autotelic_goal's) is the uninterrupted run's.
+        state_dict is called at cycle boundaries only: after after_cycle (the epoch's checkpoint, a stop's),
+        or, where gives_up_cycles, also before each cycle; load_state_dict on --resume, after the Learner's
+        own state: its graph comes back with its nodes in their saved order, so a draw over nodes by index
+        (as autotelic_goal's) is the uninterrupted run's.
       open(folder, stopping), close(): a training run's folder, for files of its own, and whether Ctrl-C or
         SIGTERM asked the run to stop (a sampler that waits stops waiting); then the run's end.
+      gives_up_cycles: whether its cycle may raise plumbing.CycleGivenUp (False here), before the cycle's segments
+        are learnt from, when a stop request ends a wait (`stopping`): the run then gives the cycle up, its
+        checkpoint the state saved before the cycle (one process only), and --resume runs it again.
       stats: this epoch's counts (a Counter of numbers; checkpointed, cleared each epoch); goals: this process's
         goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
       check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
@@ -913,6 +917,8 @@ class Sampler:
     the workers into processes (--num-envs, torchrun) depend on it (SPEC §11).
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
     goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome)."""
+
+    gives_up_cycles = False
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers

@@ -251,6 +251,16 @@ def test_a_forks_optimizer_keeps_its_moments_under_the_fused_step_and_resumes_in
     assert all(g["fused"] for g in resumed.critic_opt.param_groups)
 
 
+@pytest.mark.parametrize("saved_plain", [True, False], ids=["plain saved, fast resumed", "fast saved, plain resumed"])
+def test_a_resumed_runs_adam_steps_as_its_own_command_line_says_not_as_the_checkpoints(saved_plain):
+    args = dict(n_blocks=N, segment_len=4, stable_steps=2)
+    state = plumbing.save_state(gh.Run(gh.Args(**args, plain=saved_plain), "cpu"))
+    resumed = gh.Run(gh.Args(**args, plain=not saved_plain), "cpu")
+    plumbing.load_state(resumed, state)
+    for opt in (resumed.learner.agent.actor_opt, resumed.learner.agent.critic_opt):
+        assert [bool(g["fused"]) for g in opt.param_groups] == [saved_plain]  # --plain: torch's default step
+
+
 @pytest.mark.parametrize(
     "opt, kwargs, why",
     [(torch.optim.NAdam, dict(decoupled_weight_decay=True), "is NAdam, not torch's Adam or AdamW"),

@@ -9,10 +9,12 @@ import http.server
 import json
 import os
 import pathlib
+import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
 from collections import OrderedDict
 from pathlib import Path
 from types import SimpleNamespace
@@ -660,18 +662,29 @@ def test_paper_puts_the_process_wide_socket_timeout_back_as_it_was(served, monke
     assert socket.getdefaulttimeout() == socket_timeout
 
 
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigterm"])
 def test_a_ctrl_c_during_the_paper_download_leaves_the_cache_as_it_was_and_exits_as_an_interruption(
-    served, tmp_path, monkeypatch, capsys, socket_timeout
+    served, tmp_path, monkeypatch, capsys, socket_timeout, stop
 ):
     def interrupted(url, dst, *args, **kwargs):
         Path(f"{dst}.0123.partial").write_bytes(served.data[:100])  # half-way through
-        raise KeyboardInterrupt
+        if stop == "ctrl-c":
+            raise KeyboardInterrupt
+        os.kill(os.getpid(), signal.SIGTERM)  # a scheduler's stop
+        time.sleep(2)  # the download goes on, unless the signal stops it
 
     monkeypatch.setattr(torch.hub, "download_url_to_file", interrupted)
+    monkeypatch.setattr(plumbing, "PAPER_WAIT", 1)  # a download that went on without its file: no long wait
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     argv = ["--eval-only", "--checkpoint", "paper", "--threads", "1", "--runs-dir", str(tmp_path / "runs")]
-    with pytest.raises(SystemExit) as e:
-        plumbing.run_main(lambda: gh.main(argv))
+    ours = lambda signum, frame: None  # noqa: E731 (this test process's handler: a SIGTERM never kills it)
+    previous = signal.signal(signal.SIGTERM, ours)
+    try:
+        with pytest.raises(SystemExit) as e:
+            plumbing.run_main(lambda: gh.main(argv))
+        assert signal.getsignal(signal.SIGTERM) is ours  # given back as it was
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     err = capsys.readouterr().err
     assert e.value.code == 130 and err.strip() == "interrupted (nothing to save yet)", err
     assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()

@@ -25,6 +25,7 @@ import fetch5_env
 import gangstr_hme as gh
 import oracle_graph as og
 import person_partner as pp
+import plumbing
 
 ROOT = Path(__file__).resolve().parent.parent
 N = 3
@@ -52,7 +53,7 @@ class Asking:
         def ask():
             try:
                 self.result = self.beyond(here)
-            except KeyboardInterrupt as e:  # a stop while it waited: the run gives up the cycle
+            except plumbing.CycleGivenUp as e:  # a stop while it waited: the run gives up the cycle
                 self.result = e
 
         self.thread = threading.Thread(target=ask)
@@ -133,6 +134,19 @@ def test_the_page_sees_the_question_with_the_simulated_partners_candidates_and_t
     assert last["outcome"] == "reached" and last["picked"]["mask"] == stack and last["by"] == "person"
 
 
+def test_a_pick_never_pursued_is_in_picks_csv_by_the_next_question_even_one_with_nothing_to_ask(asking):
+    # --strategy beyond: the frontier goal picked is hidden, and the beyond goal after it may have no candidate;
+    # the pick's row is written then, before a checkpoint can count its question while a kill -9 loses the row
+    q = asking.ask_beyond()
+    goal = q["candidates"][0]["mask"]
+    assert asking.request("POST", "/answer", dict(question=q["id"], goal=goal))[0] == 200
+    asking.thread.join(5)
+    assert asking.result == goal and asking.picks() == []  # its row waits for the attempt's outcome
+    assert asking.partner.ask(asking.worker, "beyond", 0, np.array([], dtype=np.int64), asking.graph) is None
+    (row,) = asking.picks()
+    assert (row["question"], row["picked"], row["outcome"]) == (str(q["id"]), str(goal), "")
+
+
 def test_no_goal_this_time_proposes_nothing(asking):
     q = asking.ask_beyond()
     assert asking.request("POST", "/answer", dict(question=q["id"], goal=None))[0] == 200
@@ -167,7 +181,7 @@ def test_a_stop_request_drops_the_waiting_question_at_once(tmp_path):
         q = a.ask_beyond()
         stop.set()  # Ctrl-C or SIGTERM
         a.thread.join(5)
-        assert not a.thread.is_alive() and isinstance(a.result, KeyboardInterrupt)  # the run gives up the cycle
+        assert not a.thread.is_alive() and isinstance(a.result, plumbing.CycleGivenUp)  # the run gives up the cycle
         (row,) = a.picks()
         assert (row["question"], row["by"], row["picked"], row["outcome"]) == (str(q["id"]), "dropped", "", "")
         assert not a.counts  # not a choice of anyone's: picks.csv only (until --resume asks it again)
