@@ -40,6 +40,7 @@ import shutil
 import signal
 import socket
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -410,6 +411,16 @@ def save_state(run) -> dict:
     return state
 
 
+def load_adam(opt: torch.optim.Optimizer, saved: dict):
+    """A checkpoint's optimizer state into opt, which steps as this run's command line says (--plain or not,
+    speed.fuse_adams), not as the checkpoint's run did: each group keeps its own `fused`, so that torch's load
+    puts each step count where this run's step keeps it (the parameter's device when fused, else the CPU)."""
+    groups = saved["param_groups"]
+    if len(groups) == len(opt.param_groups):  # else torch's load names the difference
+        groups = [{**g, "fused": ours.get("fused")} for g, ours in zip(groups, opt.param_groups, strict=True)]
+    opt.load_state_dict({**saved, "param_groups": groups})
+
+
 def load_state(run, s: dict):
     """The run as save_state saw it (process 0's random streams and replays; see below for the others)."""
     agent, learner = run.learner.agent, run.learner
@@ -421,14 +432,12 @@ def load_state(run, s: dict):
     run.tally, learner.plan_seconds = so_far["tally"], so_far["plan_seconds"]
     run.sampler.stats = collections.Counter(so_far["stats"])
     run.rows = s["rows"]
-    fused = {name: [g.get("fused") for g in getattr(agent, name).param_groups] for name in ("actor_opt", "critic_opt")}
     for name in NETWORKS:
-        getattr(agent, name).load_state_dict(s[name])
-    for name, flags in fused.items():  # Adam steps as this run says (--plain or not, speed.fuse_adams), not as
-        opt = getattr(agent, name)  # the checkpoint's did: each group's flag back, its step counts moved to match
-        for group, flag in zip(opt.param_groups, flags, strict=True):
-            group["fused"] = flag
-        opt.load_state_dict(opt.state_dict())
+        part = getattr(agent, name)
+        if isinstance(part, torch.optim.Optimizer):
+            load_adam(part, s[name])
+        else:
+            part.load_state_dict(s[name])
     agent.normalizer.sum[:], agent.normalizer.sumsq[:], agent.normalizer.count = 0.0, 0.0, 0
     agent.normalizer.add(s["normalizer"]["sum"].numpy(), s["normalizer"]["sumsq"].numpy(), s["normalizer"]["count"])
     learner.graph.load_state_dict(s["graph"])
@@ -659,7 +668,10 @@ def paper_file(flag: str) -> str:
     downloads = int(os.environ.get("LOCAL_RANK", "0")) == 0
     made = next((p for p in reversed(path.parents) if not p.exists()), None) if downloads else None  # to remove
     timeout = socket.getdefaulttimeout()
-    term = signal.signal(signal.SIGTERM, interrupt)  # a scheduler's stop, before any Stopper: as a Ctrl-C
+    # A scheduler's stop (SIGTERM, before any Stopper) as a Ctrl-C, for the process that writes to the cache; one
+    # that waits has nothing to undo, and ends silently when torchrun stops it (its node's download failed)
+    catches = downloads and threading.current_thread() is threading.main_thread()  # signal's rule
+    term = signal.signal(signal.SIGTERM, interrupt) if catches else None
     try:
         if downloads and not path.is_file():
             progress(f"{flag} paper: downloading the authors' agent (1.2 MB) to {path}", final=True)
@@ -684,7 +696,8 @@ def paper_file(flag: str) -> str:
         sys.exit(2)
     finally:
         socket.setdefaulttimeout(timeout)
-        signal.signal(signal.SIGTERM, term)
+        if catches:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if term is None else term)  # None: set outside Python
     return str(path)
 
 
@@ -1178,8 +1191,8 @@ def job(args):
 
 
 def run_main(main):
-    """A script's `if __name__ == "__main__"`: main(), then exit with its code (130 for a Ctrl-C before the
-    run could stop at a cycle boundary: nothing to save yet)."""
+    """A script's `if __name__ == "__main__"`: main(), then exit with its code (130 for a Ctrl-C, or a SIGTERM
+    during the paper's download, before the run could stop at a cycle boundary: nothing to save yet)."""
     try:
         code = main()
     except KeyboardInterrupt:

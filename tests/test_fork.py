@@ -261,6 +261,21 @@ def test_a_resumed_runs_adam_steps_as_its_own_command_line_says_not_as_the_check
         assert [bool(g["fused"]) for g in opt.param_groups] == [saved_plain]  # --plain: torch's default step
 
 
+@pytest.mark.parametrize("fused", [None, True], ids=["plain", "fused"])
+def test_a_resumed_adams_step_counts_are_where_its_own_step_keeps_them_not_where_the_checkpoints_did(fused):
+    # the meta device stands in for a GPU: a fused step keeps its counts on the parameters' device, torch's
+    # default on the CPU (where a count on the GPU would cost a read back at every update)
+    saved = torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))], fused=True).state_dict()
+    saved["state"] = {0: dict(step=torch.tensor(5.0), exp_avg=torch.zeros(3), exp_avg_sq=torch.zeros(3))}
+    param = torch.nn.Parameter(torch.zeros(3, device="meta"))
+    opt = torch.optim.Adam([param])
+    opt.param_groups[0]["fused"] = fused  # as this run's command line said: --plain, or speed.fuse_adams
+    plumbing.load_adam(opt, saved)
+    assert opt.param_groups[0]["fused"] is fused and opt.state[param]["step"].device.type == (
+        "meta" if fused else "cpu"
+    )
+
+
 @pytest.mark.parametrize(
     "opt, kwargs, why",
     [(torch.optim.NAdam, dict(decoupled_weight_decay=True), "is NAdam, not torch's Adam or AdamW"),

@@ -721,6 +721,24 @@ def test_under_torchrun_one_process_a_node_downloads_paper_and_the_others_wait_f
     assert ("downloading" in capsys.readouterr().out) == (local_rank == "0")  # the downloader alone says so
 
 
+def test_under_torchrun_a_waiting_process_leaves_sigterm_to_torchrun_which_ends_it_without_a_word(served, monkeypatch):
+    # its node's downloader failed (exit 2): torchrun stops the others with SIGTERM, and one that waits has
+    # nothing to undo, so no "interrupted" line of its own beside the downloader's one
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    monkeypatch.setattr(plumbing, "PAPER_WAIT", 10)
+    seen, sleep = [], time.sleep
+
+    def waits(seconds):
+        seen.append(signal.getsignal(signal.SIGTERM))
+        sleep(seconds)
+
+    monkeypatch.setattr(time, "sleep", waits)
+    other = another_process_puts(served.cache, served.data, after=0.3)
+    assert plumbing.paper_file("--init-from") == str(served.cache)
+    other.join()
+    assert seen and all(handler is signal.getsignal(signal.SIGTERM) for handler in seen)
+
+
 @pytest.mark.parametrize(
     "other, says",
     [
