@@ -671,7 +671,7 @@ def paper_file(flag: str) -> str:
     # A scheduler's stop (SIGTERM, before any Stopper) as a Ctrl-C, for the process that writes to the cache; one
     # that waits has nothing to undo, and ends silently when torchrun stops it (its node's download failed)
     catches = downloads and threading.current_thread() is threading.main_thread()  # signal's rule
-    term = signal.signal(signal.SIGTERM, interrupt) if catches else None
+    term = signal.signal(signal.SIGTERM, signal.default_int_handler) if catches else None
     try:
         if downloads and not path.is_file():
             progress(f"{flag} paper: downloading the authors' agent (1.2 MB) to {path}", final=True)
@@ -699,10 +699,6 @@ def paper_file(flag: str) -> str:
         if catches:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if term is None else term)  # None: set outside Python
     return str(path)
-
-
-def interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 # ------------------------------------------------------------------------------------------------

@@ -80,7 +80,6 @@ def fuse_adams(agent):
             continue
         for settings in (opt.defaults, *opt.param_groups):
             settings["fused"] = True
-        opt._step_supports_amp_scaling = True  # as Adam(fused=True) sets it: a fork's GradScaler unscales in step
         if opt.state:  # moments already taken: torch's load moves each step count where the fused step keeps it
             opt.load_state_dict(opt.state_dict())
     if kept and not (dist.is_initialized() and dist.get_rank() > 0):

@@ -608,7 +608,7 @@ MUTATIONS = [
              '        g["fused"] = ours["fused"]\n    opt.load_state_dict(opt.state_dict())',
              "tests/test_fork.py -k step_counts_are_where"),
     Mutation("paper: a SIGTERM during the download kills it where it stands", P,
-             "term = signal.signal(signal.SIGTERM, interrupt) if", "term = signal.getsignal(signal.SIGTERM) if",
+             "signal.signal(signal.SIGTERM, signal.default_int_handler) if", "signal.getsignal(signal.SIGTERM) if",
              "tests/test_paper_agent.py -k ctrl_c_during"),
     Mutation("paper: a waiting process says it was interrupted when torchrun ends it", P,
              "catches = downloads and threading.", "catches = threading.",
