@@ -169,6 +169,31 @@ def test_off_the_cpu_kernels_the_probe_still_holds_the_fast_nets_to_mlp(monkeypa
     assert "fast nets off" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("kinked", [{1}, {1, 2}], ids=["first-batch-alone", "every-batch"])
+def test_a_gradient_sent_the_other_way_on_one_batch_alone_is_a_kinks_rounding_and_leaves_the_fast_nets_on(
+    monkeypatch, capsys, kinked
+):
+    """Within float rounding of a kink (a ReLU's 0, a max's tie), a sample's gradient goes one way in the plain
+    nets and the other in the fast ones, on one batch: the probe's second batch tells that from a fork's net,
+    which differs on every batch. The kink is made here (a loss of the same value, a gradient moved), so that it
+    does not hang on a CPU's rounding."""
+    agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
+    losses, fast_batches, w = agent.losses, [], next(agent.critic.parameters())
+
+    def losses_with_a_kink(batch):
+        critic_loss, *rest = losses(batch)
+        if gh.MLP.forward is speed.fast_forward:  # within fast_nets
+            fast_batches.append(batch)
+            if len(fast_batches) in kinked:
+                critic_loss = critic_loss + 1e-2 * (w - w.detach()).flatten()[0]  # the same value, moved gradient
+        return critic_loss, *rest
+
+    monkeypatch.setattr(agent, "losses", losses_with_a_kink)
+    same = speed.fast_nets_compute(agent, gh, kernels=True)
+    assert len(fast_batches) == 2 and not torch.equal(fast_batches[0]["obs"], fast_batches[1]["obs"])
+    assert same == (kinked == {1}) and ("fast nets off" in capsys.readouterr().out) == (not same)
+
+
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
 def test_plain_turns_every_speed_trick_off(module, monkeypatch):
     freed = []
