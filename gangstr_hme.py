@@ -75,9 +75,10 @@ class Args:
     help_cycles: int = 3
     """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
     social cycle that added no progress (the partner had nothing new to show)"""
-    ask_progress: str = "nodes"
-    """the query's progress: 'nodes' of the semantic graph, or its SR 'classes' (kinds of transition), which
-    grow for longer and so ask later (first query at epoch 6 against 1 in a pilot: towers came later too)"""
+    ask_progress: str = ""
+    """the query's progress: 'nodes' of the semantic graph ('' = nodes: given without --ask-after, a value is
+    refused, as it would do nothing), or its SR 'classes' (kinds of transition), which grow for longer and so
+    ask later (first query at epoch 6 against 1 in a pilot: towers came later too)"""
     learner_picks: str = ""
     """beyond the paper: the learner picks among the partner's candidates by 'novelty' (new configs, then
     unseen pairs of facts) or 'zpd' (its surest frontier, then novelty, then the critic's hardest); '' =

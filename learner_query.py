@@ -26,9 +26,10 @@ PROGRESS = ("nodes", "classes")
 # ------------------------------------------------------------------------------------------------
 class Query:
     """The learner asks for help once its progress has stalled for ask_after cycles. Its progress, by
-    --ask-progress: 'nodes', the configs of its semantic graph; or 'classes', its SR classes (SPEC §6), the
-    kinds of transition it has made, in which every partner proposal it reaches counts (a beyond goal is an
-    untried edge, and an untried edge has a class of its own, since every class comes with all its edges).
+    --ask-progress: 'nodes' (or '', the default), the configs of its semantic graph; or 'classes', its SR
+    classes (SPEC §6), the kinds of transition it has made, in which every partner proposal it reaches counts
+    (a beyond goal is an untried edge, and an untried edge has a class of its own, since every class comes
+    with all its edges).
       - stalled: cycles in a row that added no progress;
       - once stalled reaches ask_after, the learner asks (a query): the next cycle is social;
       - the help goes on, one social cycle after another, while each adds progress, for help_cycles cycles
@@ -44,7 +45,7 @@ class Query:
 
     def progress(self) -> int:
         graph = self.learner.graph
-        return graph.n_nodes if self.args.ask_progress == "nodes" else len(graph.sr)
+        return len(graph.sr) if self.args.ask_progress == "classes" else graph.n_nodes
 
     def asks(self) -> bool:
         """Whether this cycle is help the learner asked for."""
@@ -170,9 +171,9 @@ def check_args(a) -> str | None:
     """The options of this file: the first bad value, described, or None."""
     if a.learner_picks and a.learner_picks not in PICKS:
         return f"--learner-picks must be one of {', '.join(PICKS)} (or '': the uniform draw), got {a.learner_picks!r}"
-    if a.ask_progress not in PROGRESS:
+    if a.ask_progress not in ("", *PROGRESS):
         return f"--ask-progress must be one of {', '.join(PROGRESS)}, got {a.ask_progress!r}"
-    if a.ask_progress != PROGRESS[0] and a.ask_after == 0 and not (a.resume or a.eval_only):  # a run keeps its own
+    if a.ask_progress and a.ask_after == 0 and not (a.resume or a.eval_only):  # a run keeps its own
         return f"--ask-progress {a.ask_progress} does nothing without --ask-after (the learner never asks)"
     if a.learner_picks and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
         return "--learner-picks needs social cycles to pick in: give --sp-ratio above 0 or --ask-after above 0"

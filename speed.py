@@ -36,6 +36,8 @@ import torch
 import torch.distributed as dist
 import torch.nn as nn
 import torch.nn.functional as F
+from torch.optim.adam import Adam  # torch's, whatever a fork binds torch.optim.Adam to
+from torch.optim.adamw import AdamW
 
 import fetch5_env
 import oracle_graph as og
@@ -90,7 +92,7 @@ def fused_adam_refuses(opt: torch.optim.Optimizer) -> str:
     """Why Adam's fused step cannot stand in for `opt`'s, or '': a class other than torch's Adam and AdamW (a
     subclass may step otherwise), or a setting that the fused step refuses (differentiable, foreach) or that
     asks for the unfused one (fused=False)."""
-    if type(opt) not in (torch.optim.Adam, torch.optim.AdamW):
+    if type(opt) not in (Adam, AdamW):
         return f"is {type(opt).__name__}, not torch's Adam or AdamW"
     for key, value in (("differentiable", True), ("foreach", True), ("fused", False)):
         if any(group.get(key) is value for group in opt.param_groups):
@@ -173,27 +175,35 @@ def fast_nets_compute(agent, script, kernels: bool) -> bool:
                      noise_pi=normal(rows, 4))  # fmt: skip
         return {k: v.to(agent.device) for k, v in batch.items()}
 
-    def values(within, batch: dict) -> torch.Tensor | Exception:
+    def values(within, batch: dict) -> tuple[torch.Tensor, torch.Tensor] | Exception:
+        """The losses and TD targets; the gradients of the weights (an unused weight's: nan)."""
         try:
             with within:
                 critic_loss, actor_loss, target, _ = agent.losses(batch)
             grads = torch.autograd.grad(critic_loss + actor_loss, params, allow_unused=True)
-            grads = [target.new_full((1,), math.nan) if g is None else g.reshape(-1) for g in grads]  # unused: nan
-            return torch.cat([critic_loss.detach().reshape(1), actor_loss.detach().reshape(1), target, *grads])
+            grads = [target.new_full((1,), math.nan) if g is None else g.reshape(-1) for g in grads]
+            losses = torch.stack([critic_loss.detach().reshape(()), actor_loss.detach().reshape(())])
+            return torch.cat([losses, target]), torch.cat(grads)
         except Exception as e:  # noqa: BLE001 (a net the fast nets cannot run, of another shape: not theirs)
             return e
 
-    def agree(batch: dict) -> bool:
+    def agree(batch: dict) -> tuple[bool, bool]:
+        """Whether the two paths' values agree on `batch`, and whether their gradients do too."""
         plain, fast = values(contextlib.nullcontext(), batch), values(fast_nets(script, torch.float32, kernels), batch)
-        same = isinstance(plain, torch.Tensor) and isinstance(fast, torch.Tensor) and fast.shape == plain.shape
-        return same and torch.allclose(fast, plain, rtol=1e-4, atol=1e-4, equal_nan=True)
+        if not (isinstance(plain, tuple) and isinstance(fast, tuple)):
+            return False, False
+        same = [f.shape == p.shape and torch.allclose(f, p, rtol=1e-4, atol=1e-4, equal_nan=True)
+                for f, p in zip(fast, plain, strict=True)]  # fmt: skip
+        return same[0], all(same)
 
-    # A gradient is not continuous at a kink (a ReLU's 0, a max's tie, the min of the twin Qs): a pre-activation
-    # within float rounding of one (-4e-8 in one path, +4e-8 in the other) sends a sample's gradient one way in one
-    # path and the other way in the other. Measured: the first batch disagreed for 10 of 3,000 seeds at 3 blocks
-    # and 3 of 600 at 5, the second agreed for each. A net computed otherwise disagrees on every batch; such a
-    # sample, on one batch alone: a second batch tells them apart.
-    same = agree(random_batch()) or agree(random_batch())
+    # A gradient is not continuous at a kink (a ReLU's 0, a max's tie, the min of the twin Qs), a value is: a
+    # pre-activation within float rounding of one (-4e-8 in one path, +4e-8 in the other) sends a sample's
+    # gradient one way in one path and the other way in the other, with the same values. Measured: the first
+    # batch's gradients disagreed for 10 of 3,000 seeds at 3 blocks and 3 of 600 at 5, the second batch agreed
+    # for each. A net computed otherwise disagrees on every batch; a kink, on one batch alone: where only the
+    # first batch's gradients disagree, a second batch tells them apart. Values that disagree are no kink's.
+    values_agree, same = agree(random_batch())
+    same = same or (values_agree and all(agree(random_batch())))
     if not same and not (dist.is_initialized() and dist.get_rank() > 0):
         print("fast nets off: speed.py's no longer compute this script's nets (MLP, node_sum or edge_max changed); "
               "the SAC update runs the plain nets, in fp32", flush=True)  # fmt: skip

@@ -176,7 +176,9 @@ def test_a_gradient_sent_the_other_way_on_one_batch_alone_is_a_kinks_rounding_an
     """Within float rounding of a kink (a ReLU's 0, a max's tie), a sample's gradient goes one way in the plain
     nets and the other in the fast ones, on one batch: the probe's second batch tells that from a fork's net,
     which differs on every batch. The kink is made here (a loss of the same value, a gradient moved), so that it
-    does not hang on a CPU's rounding."""
+    does not hang on a CPU's rounding; the weights are seeded, since a kink of their own on the second batch
+    too (1 seed in 150 here, 107) would be a kink on every batch."""
+    torch.manual_seed(0)
     agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
     losses, fast_batches, w = agent.losses, [], next(agent.critic.parameters())
 
@@ -192,6 +194,26 @@ def test_a_gradient_sent_the_other_way_on_one_batch_alone_is_a_kinks_rounding_an
     same = speed.fast_nets_compute(agent, gh, kernels=True)
     assert len(fast_batches) == 2 and not torch.equal(fast_batches[0]["obs"], fast_batches[1]["obs"])
     assert same == (kinked == {1}) and ("fast nets off" in capsys.readouterr().out) == (not same)
+
+
+def test_a_value_off_on_one_batch_alone_is_no_kink_and_turns_the_fast_nets_off(monkeypatch, capsys):
+    """A kink moves a gradient, never a value: a loss or TD target that differs on the probe's first batch
+    alone (a fork's net that differs on some inputs) turns the fast nets off, as it did before the second
+    batch."""
+    agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
+    losses, fast_batches = agent.losses, []
+
+    def losses_off_on_one_batch(batch):
+        critic_loss, *rest = losses(batch)
+        if gh.MLP.forward is speed.fast_forward:  # within fast_nets
+            fast_batches.append(batch)
+            if len(fast_batches) == 1:
+                critic_loss = critic_loss + 1e-2  # another value, the same gradient
+        return critic_loss, *rest
+
+    monkeypatch.setattr(agent, "losses", losses_off_on_one_batch)
+    assert not speed.fast_nets_compute(agent, gh, kernels=True)
+    assert len(fast_batches) == 1 and "fast nets off" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)

@@ -330,6 +330,7 @@ def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
         (["--learner-picks", "best"], "--learner-picks must be one of novelty, zpd"),
         (["--ask-progress", "edges"], "--ask-progress must be one of nodes, classes"),
         (["--ask-progress", "classes"], "--ask-progress classes does nothing without --ask-after"),
+        (["--ask-progress", "nodes"], "--ask-progress nodes does nothing without --ask-after"),  # as the default
         (["--learner-picks", "zpd", "--sp-ratio", "0"], "--learner-picks needs social cycles"),
         (["--learner-picks", "zpd", "--sp-ratio", "0.2", "--partner", "person"], "give one of them"),
     ],

@@ -425,7 +425,7 @@ def test_after_init_from_the_warmup_ramps_to_the_learning_rates_times_init_lr_sc
     )
 
 
-def test_after_init_from_a_forks_parameter_groups_each_ramp_to_their_own_rate(monkeypatch):
+def test_after_init_from_a_forks_parameter_groups_each_ramp_to_their_own_rate(monkeypatch, capsys):
     adam = torch.optim.Adam
 
     def forked_adam(params, lr):  # a fork's optimizer: its first tensor at 10x the rate, in a group of its own
@@ -435,6 +435,8 @@ def test_after_init_from_a_forks_parameter_groups_each_ramp_to_their_own_rate(mo
     monkeypatch.setattr(torch.optim, "Adam", forked_adam)
     learner = learner_with_segments(4, init_from="gangstr.pt", init_lr_scale=0.5, init_warmup=2, lr_critic=2e-3)
     opts, rng, rates = (learner.agent.actor_opt, learner.agent.critic_opt), [np.random.default_rng(1)], []
+    assert all(g["fused"] for opt in opts for g in opt.param_groups)  # the fork's groups, fused: the fast update's
+    assert "fused Adam off" not in capsys.readouterr().out
     for _ in range(3):
         learner.agent.update(learner.buffer.sample(8, rng, 0.8, "final"))
         rates += [g["lr"] for opt in opts for g in opt.param_groups]
