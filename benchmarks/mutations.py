@@ -421,6 +421,13 @@ MUTATIONS = [
              "candidates = self.partner.frontier_candidates(graph, current, elsewhere)",
              "candidates = self.partner.frontier_candidates(graph, current)",
              f"{TL} -k offered_candidates"),
+    Mutation("picks: --strategy frontier sends the agent where it stands (a cycle's protocol)", LQ,
+             "candidates = self.partner.frontier_candidates(graph, current, elsewhere)",
+             "candidates = self.partner.frontier_candidates(graph, current)",
+             f"{TH} -k 'never_proposes and not uniform'"),
+    Mutation("frontier: --strategy frontier sends the agent where it stands (a cycle's protocol)", G,
+             "return stones[stones != current] if elsewhere else stones", "return stones",
+             f"{TH} -k 'never_proposes and uniform'"),
     Mutation("zpd: the frontier by novelty alone, blind to the SR estimates", LQ,
              'if self.args.learner_picks == "zpd" and len(candidates):\n            return self.pick(w, candidates, '
              'self.arrival(', 'if False:\n            return self.pick(w, candidates, self.arrival(',
@@ -433,6 +440,18 @@ MUTATIONS = [
     Mutation("picks: new configs read from the oracle's stepping stones", LQ,
              "new = ~np.isin(candidates, np.asarray(graph.masks, dtype=np.int64))",
              "new = ~np.isin(candidates, self.stepping_stones(graph))", f"{TL} -k oracle_beyond"),
+    Mutation("picks: candidates checked against an oracle graph the pick builds itself", LQ,
+             "        candidates = self.partner.beyond_candidates(graph, config)\n",
+             "        candidates = self.partner.beyond_candidates(graph, config)\n"
+             "        candidates = candidates[og.OracleGraph(self.args.n_blocks).contains(og.from_mask(candidates, "
+             "self.args.n_blocks))]\n", f"{TL} -k oracle_beyond"),
+    Mutation("picks: the partner's oracle kept at the start and read past the offers", LQ,
+             ("        self.facts = og.config_dim(args.n_blocks)\n",
+              "        candidates = self.partner.frontier_candidates(graph, current, elsewhere)\n"),
+             ("        self.facts, self.known = og.config_dim(args.n_blocks), partner.oracle\n",
+              "        candidates = self.partner.frontier_candidates(graph, current, elsewhere)\n"
+              "        candidates = candidates[self.known.contains(og.from_mask(candidates, self.args.n_blocks))]\n"),
+             f"{TL} -k oracle_beyond"),
     Mutation("help vs discovery: social cycles from cumulative segments", "plot_results.py",
              'np.diff(run["segments"], prepend=0.0) / run.get("n_segments", 10)',
              'run["segments"] / run.get("n_segments", 10)', "tests/test_plot_results.py -k help_vs_discovery"),

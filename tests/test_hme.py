@@ -196,8 +196,13 @@ def one_cycle_of(run, program) -> list:
     return w.segments
 
 
-def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
-    run = hme_run()
+PICKERS = ["", "novelty", "zpd"]  # the partner's uniform draw; the learner's picks (SPEC §7.1), in each strategy
+
+
+@pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])
+def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch, picks):
+    run = hme_run(learner_picks=picks)
+    assert (type(run.sampler.sp).__name__ == "LearnerPicks") == bool(picks)
     # The agent has made every move from "all apart" (to each close pair and each 2-stack) and nothing
     # since: those configs are its frontier, "all apart" is not.
     run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)]))])
@@ -239,9 +244,6 @@ def test_social_cycle_follows_the_protocol_step_by_step(monkeypatch):
     assert run.sampler.stats["sp_frontier_C1"] + run.sampler.stats["sp_frontier_S2"] == episodes
 
 
-PICKERS = ["", "novelty", "zpd"]  # the partner's uniform draw; the learner's picks (SPEC §7.1), in each strategy
-
-
 @pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])
 def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_and_stores_nothing(monkeypatch, picks):
     run = hme_run(strategy="frontier", learner_picks=picks)
@@ -263,6 +265,27 @@ def test_frontier_strategy_goes_to_the_frontier_deterministically_then_resets_an
     assert not run.sampler.internalization_buffer
     assert run.sampler.stats["sp_frontier_C1"] + run.sampler.stats["sp_frontier_S2"] == 10
     assert not any(k.startswith("sp_beyond") for k in run.sampler.stats)
+
+
+@pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])
+def test_frontier_strategy_never_proposes_the_frontier_the_agent_stands_on(monkeypatch, picks):
+    # SPEC §7, --strategy frontier: its goal is the journey, so the stepping stone where the agent stands
+    # (here, after every reset: the close pair C01) is not offered; every other one it can reach is.
+    run = hme_run(strategy="frontier", learner_picks=picks)
+    run.learner.graph = agent_graph([(APART, C01), (APART, M(close=[(0, 1)], above=[(0, 1)])), (C01, APART)])
+    stones = set(run.sampler.sp.frontier_candidates(run.learner.graph, C01).tolist())
+    assert C01 in stones and len(stones) > 2
+    world = ScriptedWorld(run, monkeypatch, C01, lambda goal, deterministic: True)
+    assert len(one_cycle_of(run, run.sampler.social_cycle)) == 10
+    legs = []  # each episode's goals, after its reset
+    for e in world.log:
+        if e == "reset":
+            legs.append([])
+        else:
+            legs[-1].append(e[0])
+    assert len(legs) == 5 and all(len(leg) == 2 and leg[0] == APART for leg in legs)  # C01 -> APART -> a stone
+    assert all(leg[-1] in stones - {C01} for leg in legs)
+    assert all(e == "reset" or e[0] != C01 for e in world.log)  # never proposed, never gone to
 
 
 @pytest.mark.parametrize("picks", PICKERS, ids=["uniform", "novelty", "zpd"])

@@ -247,10 +247,29 @@ class OnlyTheOffers:
         raise AssertionError(f"a pick read the partner's {name}: the oracle beyond the offered candidates")
 
 
+def oracle_closed(monkeypatch):
+    """Every read of an oracle graph (any instance: the partner's, or one a pick builds itself), and the
+    oracle's own searches, raise: what a pick may still use of oracle_graph are its encodings (from_mask...)."""
+
+    def closed(name):
+        def read(*args, **kwargs):
+            raise AssertionError(f"a pick read the oracle's {name}: beyond the offered candidates")
+
+        return read
+
+    for name, value in vars(og.OracleGraph).items():
+        if not name.startswith("_") or name in ("__init__", "__contains__"):
+            monkeypatch.setattr(og.OracleGraph, name, property(closed(name)) if isinstance(value, property)
+                                else closed(name))  # fmt: skip
+    for name in ("evaluation_classes", "is_small_step", "bfs_hops", "summary"):
+        monkeypatch.setattr(og, name, closed(name))
+
+
 @pytest.mark.parametrize("signal", SIGNALS)
-def test_no_signal_reads_the_oracle_beyond_the_offered_candidates(signal):
-    # Renaming the classes catches a read keyed by class name; this, any other read of the partner or its
-    # oracle (stepping stones, neighbours, classes): the same picks when it can answer nothing but the offers.
+def test_no_signal_reads_the_oracle_beyond_the_offered_candidates(signal, monkeypatch):
+    # Renaming the classes catches a read keyed by class name; this, any other read of the partner or of an
+    # oracle graph (stepping stones, neighbours, classes), its own or one the pick builds: the same picks when
+    # nothing answers but the offers.
     sp = gh.SocialPartner(N)
     graph = random_agent_graph(sp, 2, p_node=0.4, p_edge=0.3)
     picks, run = picks_on(graph, signal)
@@ -267,7 +286,9 @@ def test_no_signal_reads_the_oracle_beyond_the_offered_candidates(signal):
 
     with_the_oracle = all_picks()
     picks.partner = OnlyTheOffers(offers)
-    assert all_picks() == with_the_oracle
+    with monkeypatch.context() as m:
+        oracle_closed(m)
+        assert all_picks() == with_the_oracle
     assert sum(f is not None for f, _ in with_the_oracle) and sum(b is not None for _, b in with_the_oracle)
 
 
