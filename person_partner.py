@@ -474,8 +474,10 @@ class PersonPartner:
             def post(self, path: str):
                 if path != "/answer":
                     raise Rejected(404 if path not in ("/", "/state") else 405, f"nothing to POST at {path!r}")
-                if self.headers.get("Content-Type", "").split(";")[0].strip(" \t").lower() != "application/json":
-                    raise Rejected(415, "answers are application/json")
+                got = self.headers.get("Content-Type")
+                if (got or "").split(";")[0].strip(" \t").lower() != "application/json":
+                    named = "no Content-Type" if got is None else repr(got[:80])  # (a header's line: up to 64 KiB)
+                    raise Rejected(415, f"answers are application/json, not {named}")
                 partner.take_answer(self.body())
                 self.reply(200, dict(ok=True))
 

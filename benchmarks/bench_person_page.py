@@ -11,6 +11,7 @@ test suite (whose test sends 300 of these).
 """
 
 import argparse
+import math
 import random
 import statistics
 import sys
@@ -58,6 +59,10 @@ def main():
                         help="the page's connection timeout in seconds: how long a body that never comes whole "
                         "is awaited (a run's page: 15)")  # fmt: skip
     args = parser.parse_args()
+    if args.requests < 1:
+        parser.error(f"--requests must be 1 or more, got {args.requests}")
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        parser.error(f"--timeout must be a number of seconds above 0, got {args.timeout}")
     with tempfile.TemporaryDirectory() as folder:
         page = Asking(Path(folder), timeout=3600.0)
         page.partner.frame = lambda w: None  # no pictures: questions come at once (and every frame is a 404)

@@ -432,6 +432,13 @@ def test_samplers_docstring_names_every_hook_the_run_reaches_it_by_and_lists_no_
     assert not stale, f"in the contract but reached by nothing: {sorted(stale)}"
 
 
+def test_specs_list_of_a_samplers_hooks_is_the_contract():
+    spec = (ROOT / "docs" / "SPEC.md").read_text()
+    (bullet,) = re.findall(r"^- A goal sampler provides the hooks.*?(?=^- )", spec, flags=re.MULTILINE | re.DOTALL)
+    left_out = contract_hooks(gh) - {"GoalSampler"} - set(re.findall(r"`(?:Args\.)?(\w+)", bullet))
+    assert not left_out, f"hooks of Sampler's contract that SPEC's list leaves out: {sorted(left_out)}"
+
+
 def test_state_dict_is_called_at_cycle_boundaries_after_after_cycle(tmp_path, monkeypatch):
     events = []
     for hook in ("cycle", "after_cycle", "state_dict"):

@@ -664,16 +664,25 @@ def test_paper_puts_the_process_wide_socket_timeout_back_as_it_was(served, monke
     assert socket.getdefaulttimeout() == socket_timeout
 
 
+@pytest.mark.parametrize("folder", ["none", "its own"], ids=["no cache folder", "a cache folder of its own"])
 @pytest.mark.parametrize("stop", ["ctrl-c", "sigterm"])
 def test_a_ctrl_c_during_the_paper_download_leaves_the_cache_as_it_was_and_exits_as_an_interruption(
-    served, tmp_path, monkeypatch, capsys, socket_timeout, stop
+    served, tmp_path, monkeypatch, capsys, socket_timeout, stop, folder
 ):
+    if folder == "its own":  # made before: by an earlier version, or by hand, with a file of the user's
+        served.cache.parent.mkdir(parents=True)
+        (served.cache.parent / "notes.txt").write_text("mine")
+
     def interrupted(url, dst, *args, **kwargs):
-        Path(f"{dst}.0123.partial").write_bytes(served.data[:100])  # half-way through
-        if stop == "ctrl-c":
-            raise KeyboardInterrupt
-        os.kill(os.getpid(), signal.SIGTERM)  # a scheduler's stop
-        time.sleep(2)  # the download goes on, unless the signal stops it
+        partial = Path(f"{dst}.0123.partial")
+        partial.write_bytes(served.data[:100])  # half-way through
+        try:
+            if stop == "ctrl-c":
+                raise KeyboardInterrupt
+            os.kill(os.getpid(), signal.SIGTERM)  # a scheduler's stop
+            time.sleep(2)  # the download goes on, unless the signal stops it
+        finally:
+            partial.unlink()  # as torch.hub removes its own
 
     monkeypatch.setattr(torch.hub, "download_url_to_file", interrupted)
     monkeypatch.setattr(plumbing, "PAPER_WAIT", 1)  # a download that went on without its file: no long wait
@@ -689,7 +698,11 @@ def test_a_ctrl_c_during_the_paper_download_leaves_the_cache_as_it_was_and_exits
         signal.signal(signal.SIGTERM, previous)
     err = capsys.readouterr().err
     assert e.value.code == 130 and err.strip() == "interrupted (nothing to save yet)", err
-    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
+    if folder == "its own":
+        assert sorted(p.name for p in (tmp_path / "cache").rglob("*")) == ["hme-gangstr", "notes.txt"]
+    else:
+        assert not (tmp_path / "cache").exists()
+    assert not (tmp_path / "runs").exists()
     assert socket.getdefaulttimeout() == socket_timeout
 
 
@@ -723,22 +736,36 @@ def test_under_torchrun_one_process_a_node_downloads_paper_and_the_others_wait_f
     assert ("downloading" in capsys.readouterr().out) == (local_rank == "0")  # the downloader alone says so
 
 
-def test_under_torchrun_a_waiting_process_leaves_sigterm_to_torchrun_which_ends_it_without_a_word(served, monkeypatch):
+WAITS_THEN_SAYS = """
+import sys, time
+import gangstr_hme as gh, plumbing
+sleep = time.sleep
+def waits(seconds):  # the wait for the node's downloader: said once, on stdout, for the test to stop it there
+    if not waits.said:
+        print("waiting", flush=True)
+        waits.said = True
+    sleep(seconds)
+waits.said = False
+time.sleep = waits
+sys.argv = ["gangstr_hme.py", "--eval-only", "--checkpoint", "paper", "--runs-dir", sys.argv[1]]
+plumbing.run_main(gh.main)
+"""
+
+
+def test_under_torchrun_a_waiting_process_leaves_sigterm_to_torchrun_which_ends_it_without_a_word(tmp_path):
     # its node's downloader failed (exit 2): torchrun stops the others with SIGTERM, and one that waits has
-    # nothing to undo, so no "interrupted" line of its own beside the downloader's one
-    monkeypatch.setenv("LOCAL_RANK", "1")
-    monkeypatch.setattr(plumbing, "PAPER_WAIT", 10)
-    seen, sleep = [], time.sleep
-
-    def waits(seconds):
-        seen.append(signal.getsignal(signal.SIGTERM))
-        sleep(seconds)
-
-    monkeypatch.setattr(time, "sleep", waits)
-    other = another_process_puts(served.cache, served.data, after=0.3)
-    assert plumbing.paper_file("--init-from") == str(served.cache)
-    other.join()
-    assert seen and all(handler is signal.getsignal(signal.SIGTERM) for handler in seen)
+    # nothing to undo, so it dies of the signal without an "interrupted" line of its own beside the downloader's
+    env = dict(os.environ, LOCAL_RANK="1", XDG_CACHE_HOME=str(tmp_path / "cache"), PYTHONPATH=str(ROOT))
+    child = subprocess.Popen([sys.executable, "-c", WAITS_THEN_SAYS, str(tmp_path / "runs")], cwd=ROOT, env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert child.stdout.readline() == "waiting\n"
+        child.send_signal(signal.SIGTERM)
+        out, err = child.communicate(timeout=60)
+    finally:
+        child.kill()
+    assert child.returncode == -signal.SIGTERM and (out, err) == ("", ""), err
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
 
 
 @pytest.mark.parametrize(

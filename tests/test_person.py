@@ -314,6 +314,16 @@ def test_a_bad_request_gets_a_4xx_and_changes_nothing(asking, name):
     assert asking.result == one
 
 
+@pytest.mark.parametrize("content_type, named", [("text/plain; charset=utf-8", "'text/plain; charset=utf-8'"),
+                                                  (None, "no Content-Type")])  # fmt: skip
+def test_an_answer_of_another_content_type_is_refused_naming_the_one_it_has(asking, content_type, named):
+    q = asking.ask_beyond()
+    head = f"POST /answer?token=TOKEN HTTP/1.0\r\nHost: 127.0.0.1:{asking.port}\r\nContent-Length: 2"
+    status, body = raw(asking, head + ("" if content_type is None else f"\r\nContent-Type: {content_type}"), b"{}")
+    assert status == 415 and json.loads(body)["error"] == f"answers are application/json, not {named}"
+    assert asking.partner.question is q and asking.partner.answer is None
+
+
 class Parked(threading.Condition):
     """The partner's lock, whose waiting run thread stays parked (lock released) until `go` is set."""
 
