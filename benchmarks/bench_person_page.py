@@ -1,6 +1,7 @@
 """The person partner's page under random requests: --requests of them, each a request the page serves
-with up to three of its fields varied (method, path, version, Host, token, Content-Type, Content-Length,
-body, headers; tests/test_person.py's random_request, drawn here by Python's random), sent on raw sockets
+with up to three of its fields varied (method, path, the query's other fields, version, Host, token,
+Content-Type, Content-Length, body, headers; methods, paths and query fields partly generated character by
+character; tests/test_person.py's random_request, drawn here by Python's random), sent on raw sockets
 to a live page with a question waiting. Each reply is checked as the test checks it: the status SPEC
 §7.1 gives for the request's first fault, in the page's JSON form; the page still serving; picks.csv one
 row longer for each answer taken, and unchanged otherwise. Prints what was tried (by method, by field
@@ -22,7 +23,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-from test_person import Asking, play, random_request  # noqa: E402
+from test_person import METHODS, Asking, play, random_request  # noqa: E402
 
 
 def table(title: str, counts: Counter, times: dict | None = None):
@@ -37,7 +38,7 @@ def bombard(page: Asking, n: int, rng: random.Random) -> dict:
     tried = dict(methods=Counter(), varied=Counter(), statuses=Counter(), times=defaultdict(list), broken=[], taken=0)
     for i in range(n):
         request = random_request(rng.choice, rng.randint)
-        tried["methods"][request["method"]] += 1
+        tried["methods"][request["method"] if request["method"] in METHODS else "(another token, generated)"] += 1
         tried["varied"].update(request["varied"] or ["(nothing: a request the page serves)"])
         t = time.perf_counter()
         try:

@@ -433,7 +433,7 @@ def test_samplers_docstring_names_every_hook_the_run_reaches_it_by_and_lists_no_
 
 
 def test_specs_list_of_a_samplers_hooks_is_the_contract():
-    spec = (ROOT / "docs" / "SPEC.md").read_text()
+    spec = (ROOT / "docs/SPEC.md").read_text()
     (bullet,) = re.findall(r"^- A goal sampler provides the hooks.*?(?=^- )", spec, flags=re.MULTILINE | re.DOTALL)
     left_out = contract_hooks(gh) - {"GoalSampler"} - set(re.findall(r"`(?:Args\.)?(\w+)", bullet))
     assert not left_out, f"hooks of Sampler's contract that SPEC's list leaves out: {sorted(left_out)}"

@@ -453,6 +453,8 @@ METHODS = ("GET", "POST", "PUT", "DELETE", "PATCH", "OPTIONS", "HEAD", "BREW", "
 PATHS = ("/", "/state", "/answer", "/admin", "/state/", "/answer/", "/frame/q1.png", "/frame/a1.png", "/frame/",
          "*", "/STATE", "/%73tate", "/index.html", "/state;x", "/../state")  # fmt: skip
 PATH_CHARS = "abcdefghijklmnopqrstuvwxyzABCXYZ0123456789-._~%!$&'()*+,;=:@"  # no / ? # or space
+METHOD_CHARS = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz-_!#$*+.^|~"  # any token's (RFC 9110)
+FIELD_CHARS = "abcdefghijklmnopqrstuvwxyzT0123456789-._~%+"  # a query field's name and value: no & = # or space
 VERSIONS = {"HTTP/1.0": 0, "HTTP/1.1": 0, "HTTP/1.2": 0, "HTTP/2.0": 505, "HTTP/3.0": 505, "HTTP/0.9": 505,
             "HTTP/00.9": 505, "HTTP/1": 400, "http/1.1": 400, "HTTP/1.x": 400, "HTTP/1.1.1": 400, "HTTPS/1.1": 400,
             "": 0}  # the status the last word of a request line calls for ("": the line has no version)  # fmt: skip
@@ -500,6 +502,13 @@ BODIES = ("a pick", "no goal", "a pick, padded", "a pick, then junk", "a pick in
           "random bytes")  # fmt: skip
 
 
+def query_field(choose, number) -> str:
+    """A field of the query string other than the token: `name=value`, `name=` or `name` (never named token)."""
+    name = "".join(choose(FIELD_CHARS) for _ in range(number(1, 6)))
+    value = "".join(choose(FIELD_CHARS) for _ in range(number(0, 8)))
+    return ("x" if name == "token" else "") + name + choose(("=" + value, "=", ""))
+
+
 def vary_body(choose, number):
     kind = choose(BODIES)
     if kind == "random bytes":
@@ -513,7 +522,9 @@ VARY = {  # a field of a request: a random value for it (the answer's first: hyp
     "token": lambda choose, number: choose(tuple(TOKENS)),
     "content type": lambda choose, number: choose(tuple(CONTENT_TYPES)),
     "host": lambda choose, number: choose(HOSTS),
-    "method": lambda choose, number: choose(METHODS),
+    "method": lambda choose, number: choose(METHODS) if number(0, 2) else "".join(
+        choose(METHOD_CHARS) for _ in range(number(1, 10))),
+    "query": lambda choose, number: tuple([query_field(choose, number) for _ in range(number(0, 3))] for _ in "ab"),
     "path": lambda choose, number: choose(PATHS) if number(0, 2) else "/" + "".join(
         choose(PATH_CHARS) for _ in range(number(1, 12))),
     "version": lambda choose, number: choose(tuple(VERSIONS)),
@@ -536,7 +547,7 @@ SERVED = (  # requests the page serves, before any field is varied
     dict(method="POST", path="/answer", body=("a pick", 1)),
     dict(method="POST", path="/answer", body=("no goal", 0)),
 )
-DEFAULTS = {"version": "HTTP/1.1", "extra word": None, "long line": False, "host": "127.0.0.1:PORT",
+DEFAULTS = {"version": "HTTP/1.1", "extra word": None, "long line": False, "host": "127.0.0.1:PORT", "query": ([], []),
             "token": "in the query", "content type": "application/json", "length": ("exact", 1), "keep open": False,
             "junk headers": [], "over 100 headers": False, "a long header": False, "a line that is no header": None,
             "nothing sent": None}  # fmt: skip
@@ -577,6 +588,9 @@ def answer_body(kind: str, m, q: dict) -> bytes:
 def on_the_wire(request: dict, a: Asking, q: dict) -> tuple[str, list[str], bytes]:
     """The request line, the header lines and the body that `request` sends."""
     query, x_token = TOKENS[request["token"]][0](a.token)
+    before, after = request["query"]  # other fields around the token's: the page reads the token alone
+    fields = [*before, *([query[1:]] if query else []), *after]
+    query = "?" + "&".join(fields) if fields else ""
     path = request["path"] + ("x" * 70_000 if request["long line"] else "")
     words = [request["method"], path + query, request["extra word"], request["version"]]
     host = request["host"] and request["host"].replace("PORT", str(a.port)).replace("OTHER", str(a.port + 1))
