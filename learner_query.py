@@ -78,9 +78,9 @@ class LearnerPicks:
     SocialPartner, offers them; everything else, stepping stones and classes, is the partner's). A config's
     facts are its true predicates (SPEC §2); a pair is two of them, or one with itself. By --learner-picks:
       - 'novelty' (count-based): a beyond goal is a candidate that is not yet a node of the agent's graph
-        (a config it has never been in), if there is one, and among those the one holding the most pairs
-        that no node holds together. A frontier goal is a node, whose pairs have all been held: all tie,
-        and the draw below decides, as the uniform partner does.
+        (no stable segment has started or ended there, up to the blocks' order), if there is one, and among
+        those the one holding the most pairs that no node holds together. A frontier goal is a node, whose
+        pairs have all been held: all tie, and the draw below decides, as the uniform partner does.
       - 'zpd' (competence, the zone of proximal development): the frontier goal is the stepping stone the
         agent is surest to arrive at, by its graph: the highest product of SR estimates along a path from
         where it stands (SPEC §6's safest path; 1 for where it stands). A beyond goal is picked by novelty,
@@ -109,7 +109,7 @@ class LearnerPicks:
 
     def beyond_goal(self, graph, config: int, w) -> int | None:
         candidates = self.partner.beyond_candidates(graph, config)
-        new = ~np.isin(candidates, np.asarray(graph.masks, dtype=np.int64))  # configs it has never been in
+        new = ~np.isin(candidates, np.asarray(graph.masks, dtype=np.int64))  # no node of its graph yet
         scores = [new.astype(np.float64), self.novelty(graph, candidates)]
         if self.args.learner_picks == "zpd" and len(candidates):
             scores.append(-self.values(w, candidates))  # the hardest, by the critic

@@ -293,7 +293,7 @@ def test_no_signal_reads_the_oracle_beyond_the_offered_candidates(signal, monkey
 
 
 def test_learner_picks_change_what_the_partner_proposes_toward_what_novelty_promises(tmp_path, monkeypatch):
-    # Each beyond goal proposed, scored as novelty promises (a config never visited first, then the pairs of
+    # Each beyond goal proposed, scored as novelty promises (a config that is no node yet first, then the pairs of
     # facts no node holds together, brute force), against the best and the mean of what was offered.
     proposed = []
 
