@@ -9,6 +9,7 @@ import http.server
 import json
 import os
 import pathlib
+import select
 import signal
 import socket
 import subprocess
@@ -759,6 +760,7 @@ def test_under_torchrun_a_waiting_process_leaves_sigterm_to_torchrun_which_ends_
     child = subprocess.Popen([sys.executable, "-c", WAITS_THEN_SAYS, str(tmp_path / "runs")], cwd=ROOT, env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
+        assert select.select([child.stdout], [], [], 60)[0], "the child never reached the wait"
         assert child.stdout.readline() == "waiting\n"
         child.send_signal(signal.SIGTERM)
         out, err = child.communicate(timeout=60)
