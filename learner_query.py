@@ -173,8 +173,6 @@ def check_args(a) -> str | None:
         return f"--learner-picks must be one of {', '.join(PICKS)} (or '': the uniform draw), got {a.learner_picks!r}"
     if a.ask_progress not in ("", *PROGRESS):
         return f"--ask-progress must be one of {', '.join(PROGRESS)}, got {a.ask_progress!r}"
-    if a.ask_progress and a.ask_after == 0 and not (a.resume or a.eval_only):  # a run keeps its own
-        return f"--ask-progress {a.ask_progress} does nothing without --ask-after (the learner never asks)"
     if a.learner_picks and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
         return "--learner-picks needs social cycles to pick in: give --sp-ratio above 0 or --ask-after above 0"
     if a.learner_picks and a.partner == "person":

@@ -97,7 +97,8 @@ def parse_args(Args: type, check_sampler_args, argv=None):
     """The script's Args from the command line, or exit 2 with one line naming the first bad value."""
     parser = make_parser(Args)
     args = Args(**vars(parser.parse_args(argv)))
-    problem = check_args(args, check_sampler_args) or check_init_flags(args, given_flags(Args, argv))
+    given = given_flags(Args, argv)
+    problem = check_args(args, check_sampler_args) or check_init_flags(args, given) or check_needs(args, given)
     if problem:
         parser.error(problem)  # exit code 2, the message names the value
     return args
@@ -110,6 +111,16 @@ def check_init_flags(a, given: set[str]) -> str | None:
     if stray and not (a.init_from or a.resume):
         flag = f"--{stray[0].replace('_', '-')} {getattr(a, stray[0])}"
         return f"{flag} does nothing without --init-from (a run started from a trained agent)"
+    return None
+
+
+def check_needs(a, given: set[str]) -> str | None:
+    """A script's flags that do nothing unless another is set (its Args.NEEDS: flag -> (the flag it needs,
+    why)): given without it (a resume or an evaluation keeps the run's own), refused."""
+    for name, (needed, why) in getattr(type(a), "NEEDS", {}).items():
+        if name in given and not getattr(a, needed) and not (a.resume or a.eval_only):
+            flag, other = (f"--{x.replace('_', '-')}" for x in (name, needed))
+            return f"{flag} {getattr(a, name)} does nothing without {other} ({why})"
     return None
 
 
@@ -535,8 +546,11 @@ def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
     saved = type(args)(**state["args"])
     # besides plumbing's own, a script's Args may name what --resume may change in its RESUMABLE
     allowed = EVAL_CONTROL if args.eval_only else RUN_CONTROL + tuple(getattr(type(args), "RESUMABLE", ()))
+    same = getattr(type(args), "SAME", {})  # a script's values that mean the same: no difference
+    meaning = lambda k, v: same.get(k, {}).get(v, v)  # noqa: E731
     bad = [f"--{k.replace('_', '-')} {getattr(args, k)!r} (checkpoint: {getattr(saved, k)!r})"
-           for k in sorted(given - set(allowed)) if getattr(args, k) != getattr(saved, k)]  # fmt: skip
+           for k in sorted(given - set(allowed))
+           if meaning(k, getattr(args, k)) != meaning(k, getattr(saved, k))]  # fmt: skip
     if bad:
         print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
         sys.exit(2)
@@ -746,9 +760,12 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
     return row
 
 
-def learning_text(args, critic_loss: float) -> str:
+def learning_text(args, critic_loss: float, waiting: tuple[int, int] | None = None) -> str:
     """What the last cycle's SAC updates did, for the console: the critic loss (nan if it diverged), or that
-    none ran (--n-updates 0; with --freeze-normalizer as well, a fixed agent)."""
+    none ran (--n-updates 0; with --freeze-normalizer as well, a fixed agent; `waiting`, the learner's (held,
+    needed): the replays still filling for --init-learning-starts, where progress.csv logs nan)."""
+    if waiting is not None:
+        return f"no SAC update yet: replays filling, {waiting[0]:,} of {waiting[1]:,} segments (--init-learning-starts)"
     if args.n_updates > 0:
         return f"critic loss {critic_loss:.3f}"
     return "fixed agent: no SAC update, normalizer frozen" if args.freeze_normalizer else "no SAC update"
@@ -782,7 +799,7 @@ def cycle_progress(run, detail: str):
     per_cycle, per_eval = seconds / max(1, run.cycle), run.rows[-1]["time_eval"] if run.rows else 0.0
     epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval
     run_left = epoch_left + (a.n_epochs - run.epoch - 1) * (per_cycle * a.n_cycles + per_eval)
-    learning = learning_text(a, tally["losses"]["critic_loss"])
+    learning = learning_text(a, tally["losses"]["critic_loss"], getattr(run.learner, "waiting", None))
     progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | {learning} | train {rate:.0f} steps/s | "
              f"left: epoch {duration(epoch_left)}, run {duration(run_left)}")  # fmt: skip
 
@@ -914,8 +931,9 @@ def claim_name(folder: Path, stem: str) -> Path:
 
 def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
     """--eval-only: the saved agent's SR per class (SPEC §9) by the script's evaluate(run, video, planner),
-    printed and saved as JSON beside the checkpoint, named after it; with --capture-video, an mp4 per class
-    of its first evaluation episodes. `planner`: the graph that plans sub-goals instead of the agent's."""
+    printed and saved as JSON beside the checkpoint (the paper's file: in --runs-dir), named after it; with
+    --capture-video, an mp4 per class of its first evaluation episodes, in videos/ beside the JSON.
+    `planner`: the graph that plans sub-goals instead of the agent's."""
     args = run.args
     for key in ("buffer", "rng", "env_rng"):  # evaluation needs no replay, and draws from its own seeds
         state.pop(key, None)
@@ -934,7 +952,11 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
     checkpoint = Path(args.checkpoint).resolve()
     agent = "paper" if paper else f"epoch{run.epoch}"  # the paper's file does not say its epoch
     suffix = "_oracle" if args.plan_on == "oracle" else ""
-    out = claim_name(checkpoint.parent, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{suffix}")
+    # a run's checkpoint: beside it, in its run folder; the paper's file (`paper`: in the download cache) is no
+    # run's: in --runs-dir, where a run's results are
+    folder = Path(args.runs_dir).resolve() if paper else checkpoint.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    out = claim_name(folder, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{suffix}")
     result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
                   epoch=None if paper else run.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
@@ -953,7 +975,7 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
           f"sub-goals planned on the {args.plan_on}'s graph)")  # fmt: skip
     print(f"saved {out}")
     for name, frames in (video or {}).items():
-        path = checkpoint.parent / "videos" / f"{out.stem}_{name}.mp4"
+        path = folder / "videos" / f"{out.stem}_{name}.mp4"
         path.parent.mkdir(exist_ok=True)
         write_video(path, frames, fps=1 / run.workers[0].env.dt)
         print(f"video {path} ({len(frames)} frames)")
@@ -1143,7 +1165,8 @@ class RunFolder:
             self.logger.log(row)
         self.saved_at = (run.epoch, run.cycle)
         per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
-        learned = f"{learning_text(run.args, math.nan)} | " if run.args.n_updates == 0 else ""
+        waiting = getattr(run.learner, "waiting", None)  # --init-learning-starts: the replays still filling
+        learned = f"{learning_text(run.args, math.nan, waiting)} | " if run.args.n_updates == 0 or waiting else ""
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
                  f"{learned}"
                  f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",

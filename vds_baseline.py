@@ -106,7 +106,8 @@ class Args:
     max_eval_subgoals: int = 9
     """sub-goal segments an evaluation episode may use"""
     eval_only: bool = False
-    """evaluate the --checkpoint (SR per class, printed and saved beside it) and exit; no training"""
+    """evaluate the --checkpoint (SR per class, printed and saved beside it; the paper's file's in --runs-dir) and
+    exit; no training"""
     checkpoint: str = ""
     """checkpoint to evaluate with --eval-only (paper: the authors' agent, fetched once into a cache)"""
     plan_on: str = "agent"
@@ -143,7 +144,7 @@ class Args:
     move every weight by about lr, a trained network's too; 2,000 = 2 / (1 - beta2), the untuned warm-up of Ma and
     Yarats 2021); 0: none"""
     init_learning_starts: int = 0
-    """with --init-from: segments each worker collects before the first SAC update (0: measured no better)"""
+    """with --init-from: segments every worker's replay holds before a SAC update runs (0: measured no better)"""
     freeze_normalizer: bool = False
     """keep the normalizer's statistics as they start (with --n-updates 0: a fixed agent; docs/training.md); with
     --init-from it is on unless --no-freeze-normalizer: updating them lost the paper's agent (docs/results.md)"""
@@ -1100,6 +1101,7 @@ class Learner:
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.segments = 0  # every worker's, so far
         self.plan_seconds = 0.0  # planning + graph updates this epoch, for the speed report
+        self.waiting = None  # see train
 
     def learn_from(self, per_worker: list[list[Segment]]):
         """Store each worker's segments (per_worker[i]: worker i's, as many for each) in its replay, update
@@ -1126,11 +1128,14 @@ class Learner:
         workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
         args, infos = self.args, []
         her_prob = 1 - 1 / (1 + args.her_k)
-        # --init-learning-starts (SPEC §10), counted as every process counts it: a resumed torchrun job's other
-        # processes restart their replays (SPEC §10), and all must update together or none
-        stored = self.segments // (world() * args.num_envs)  # each worker's segments so far
-        waiting = args.init_from and stored < args.init_learning_starts
-        for _ in range(args.n_updates if self.buffer.size and not waiting else 0):
+        # --init-learning-starts (SPEC §10): no update until every worker's replay, in every process, holds that
+        # many segments (all processes update together or none); after a --resume without the saved replays, or in
+        # a resumed torchrun job's other processes (SPEC §10), the replays fill again first
+        self.waiting = None  # (segments the smallest replay holds, --init-learning-starts) while no update runs
+        if args.init_from and args.init_learning_starts:
+            held = int(gather_workers(np.full((args.num_envs, 1), self.buffer.size)).min())
+            self.waiting = (held, args.init_learning_starts) if held < args.init_learning_starts else None
+        for _ in range(args.n_updates if self.buffer.size and not self.waiting else 0):
             info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))
         return plumbing.update_means(infos)  # one wait for the GPU a cycle, not one an update

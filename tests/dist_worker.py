@@ -7,6 +7,7 @@ Each process makes one SAC update on its workers' fixed batches (a separate copy
 then trains a few cycles, and saves what the test compares to OUT_DIR/{mode}{rank}.pt; under
 torchrun, every worker then runs gangstr_hme.main on a tiny run whose folder goes to OUT_DIR/runs."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -64,6 +65,10 @@ def main(out: Path, num_envs: int):
         [p.detach().reshape(-1) for m in (learner.agent.actor, learner.agent.critic) for p in m.parameters()]
     )
     norm = learner.agent.normalizer
+    # --init-learning-starts 3: process 1's replay filling again (as in a resumed job), process 0's full
+    waiter = gh.Learner(dataclasses.replace(args, init_from="gangstr.pt", init_learning_starts=3, n_updates=0), device)
+    waiter.buffer.size = 1 if r == 1 else 3
+    waiter.train([w.rng for w in run.workers])
     saved = dict(
         initial=initial,
         batches=[{k: torch.from_numpy(v) for k, v in b.items()} for b in mine],
@@ -84,6 +89,7 @@ def main(out: Path, num_envs: int):
         proposed=sum(v for k, v in run.sampler.stats.items() if k.startswith("sp_beyond_") and "_reached_" not in k),
         help_cycles=run.sampler.stats["help_cycles"],
         losses={k: torch.tensor([m[k] for m in logged]) for k in logged[0]},
+        waiting=torch.tensor(waiter.waiting or (-1, -1)),
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
     if num_envs > 1:

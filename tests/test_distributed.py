@@ -145,6 +145,11 @@ def test_each_worker_keeps_its_own_replay_while_counters_cover_both(workers):
     assert r0["normalizer"][-1] == 2 * own * (TINY["segment_len"] + 1)  # observations of both workers
 
 
+def test_init_learning_starts_waits_in_every_process_until_the_smallest_replay_holds_enough(workers):
+    # process 1's replay holds 1 segment of 3, process 0's all 3: neither updates, and both say so alike
+    assert [r["waiting"].tolist() for r in workers[1]] == [[1, 3], [1, 3]]
+
+
 def test_only_worker_0_writes_the_run_folder_and_its_checkpoint_once(workers):
     out, _, stdout = workers
     runs = list((out / "runs").iterdir())

@@ -240,19 +240,21 @@ def test_plain_refuses_the_speed_flags_in_one_line(monkeypatch, capsys, flags, n
 # ------------------------------------------------------------------------------------------------
 # A fork's optimizer: Adam's fused step keeps its groups and settings, or leaves it as built
 # ------------------------------------------------------------------------------------------------
-def forked_agent(critic_opt=torch.optim.AdamW, **critic_settings):
+def forked_agent(critic_opt=torch.optim.AdamW, second_group: dict | None = None, **critic_settings):
     """A SAC whose optimizers a fork changed, before the fast path: the actor's and critic's weights in two
     parameter groups, the second at its own rate, betas and weight decay (defaults: the fork's rate, betas,
-    eps and weight decay); the critic's optimizer `critic_opt`, by default AdamW with amsgrad."""
+    eps and weight decay); the critic's optimizer `critic_opt`, by default AdamW with amsgrad, its second
+    group with the settings `second_group` besides."""
     agent = gh.SAC(gh.Args(n_blocks=N, plain=True), 10 + 15 * N, torch.device("cpu"))
 
-    def two_groups(net, adam, **settings):
+    def two_groups(net, adam, second=None, **settings):
         params = list(net.parameters())
-        return adam([dict(params=params[:2]), dict(params=params[2:], lr=3e-3, betas=(0.5, 0.9), weight_decay=0.2)],
-                    lr=1e-4, betas=(0.8, 0.99), eps=1e-6, weight_decay=0.1, **settings)  # fmt: skip
+        second = dict(params=params[2:], lr=3e-3, betas=(0.5, 0.9), weight_decay=0.2, **(second or {}))
+        return adam([dict(params=params[:2]), second], lr=1e-4, betas=(0.8, 0.99), eps=1e-6, weight_decay=0.1,
+                    **settings)  # fmt: skip
 
     agent.actor_opt = two_groups(agent.actor, torch.optim.Adam)
-    agent.critic_opt = two_groups(agent.critic, critic_opt, **(critic_settings or dict(amsgrad=True)))
+    agent.critic_opt = two_groups(agent.critic, critic_opt, second_group, **(critic_settings or dict(amsgrad=True)))
     return agent
 
 
@@ -342,6 +344,19 @@ def test_a_forks_optimizer_that_the_fused_step_cannot_stand_in_for_is_kept_as_bu
     assert all(g["fused"] for g in agent.actor_opt.param_groups)  # the actor's Adam: fused all the same
     out = capsys.readouterr().out.strip()
     assert len(out.splitlines()) == 1 and out.startswith("fused Adam off") and f"the critic's optimizer {why}" in out
+
+
+@pytest.mark.parametrize("key, value", [("differentiable", True), ("foreach", True), ("fused", False)])
+def test_a_setting_on_a_forks_second_parameter_group_alone_keeps_its_optimizer_as_built_said_in_one_line(
+    capsys, key, value
+):
+    agent = forked_agent(torch.optim.Adam, second_group={key: value})
+    built = agent.critic_opt, settings(agent.critic_opt, but=())
+    assert agent.critic_opt.param_groups[0].get(key) is not value  # the first group leaves the step free
+    speed.fast_update(agent)
+    assert (agent.critic_opt, settings(agent.critic_opt, but=())) == built
+    out = capsys.readouterr().out.strip()
+    assert len(out.splitlines()) == 1 and f"the critic's optimizer sets {key}={value}" in out
 
 
 # ------------------------------------------------------------------------------------------------

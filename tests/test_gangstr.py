@@ -677,6 +677,9 @@ def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_w
     assert math.isnan(run.tally["losses"]["critic_loss"])
     assert plumbing.learning_text(args, math.nan) == "fixed agent: no SAC update, normalizer frozen"
     assert plumbing.learning_text(gh.Args(), math.nan) == "critic loss nan"  # updates ran and diverged: say so
+    assert plumbing.learning_text(gh.Args(), math.nan, (3, 50)) == (  # --init-learning-starts: none yet
+        "no SAC update yet: replays filling, 3 of 50 segments (--init-learning-starts)"
+    )
 
 
 def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():

@@ -2,6 +2,7 @@
 (--learner-picks), and what its query counts as progress (--ask-progress)."""
 
 import csv
+import dataclasses
 import itertools
 
 import numpy as np
@@ -13,6 +14,7 @@ from test_hme import APART, C01, TINY, M, agent_graph, answers, hme_run, random_
 import gangstr_hme as gh
 import learner_query as lq
 import oracle_graph as og
+import plumbing
 
 N = 3
 SIGNALS = list(lq.PICKS)
@@ -352,6 +354,8 @@ def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
         (["--ask-progress", "edges"], "--ask-progress must be one of nodes, classes"),
         (["--ask-progress", "classes"], "--ask-progress classes does nothing without --ask-after"),
         (["--ask-progress", "nodes"], "--ask-progress nodes does nothing without --ask-after"),  # as the default
+        (["--help-cycles", "5"], "--help-cycles 5 does nothing without --ask-after (the learner never asks)"),
+        (["--help-cycles", "3"], "--help-cycles 3 does nothing without --ask-after"),  # the default's value, given
         (["--learner-picks", "zpd", "--sp-ratio", "0"], "--learner-picks needs social cycles"),
         (["--learner-picks", "zpd", "--sp-ratio", "0.2", "--partner", "person"], "give one of them"),
     ],
@@ -360,3 +364,13 @@ def test_bad_learner_options_exit_2_naming_the_value_before_anything_is_written(
     with pytest.raises(SystemExit) as e:
         gh.main([*TINY, *flags, "--runs-dir", str(tmp_path / "runs")])
     assert e.value.code == 2 and says in capsys.readouterr().err and not (tmp_path / "runs").exists()
+
+
+def test_resume_takes_a_value_that_means_what_the_checkpoints_does_and_refuses_one_that_does_not(capsys):
+    saved = {"args": dataclasses.asdict(gh.Args(n_blocks=3, ask_after=5))}  # --ask-progress '': nodes
+    given = {"ask_progress", "resume"}
+    args = gh.Args(n_blocks=3, ask_after=5, ask_progress="nodes", resume="checkpoint.pt")
+    assert plumbing.args_from_checkpoint(args, given, saved, "--resume").ask_progress == ""  # the run's own
+    with pytest.raises(SystemExit) as e:
+        plumbing.args_from_checkpoint(dataclasses.replace(args, ask_progress="classes"), given, saved, "--resume")
+    assert e.value.code == 2 and "--ask-progress 'classes' (checkpoint: '')" in capsys.readouterr().err
