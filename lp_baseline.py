@@ -136,12 +136,10 @@ class Args:
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     init_lr_scale: float = 0.1
     """with --init-from: both learning rates are multiplied by this; at one worker the paper's rates (1) lost the
-    paper's agent, 0.2 (Adam's square-root rule for its batch) kept S5 at 0.43-0.82 over 10 epochs and 0.1 at
-    0.80-0.92 (docs/results.md, "Continuing the paper's training")"""
+    paper's agent, 0.2 kept S5 at 0.43-0.82 over 10 epochs, 0.1 at 0.80-0.92 (docs/results.md)"""
     init_warmup: int = 2000
     """with --init-from: SAC updates over which both learning rates rise linearly from 0 (a fresh Adam's first steps
-    move every weight by about lr, a trained network's too; 2,000 = 2 / (1 - beta2), the untuned warm-up of Ma and
-    Yarats 2021); 0: none"""
+    move every weight by about lr; 2,000 = 2 / (1 - beta2), Ma and Yarats 2021's untuned warm-up); 0: none"""
     init_learning_starts: int = 0
     """with --init-from: segments every worker's replay holds before a SAC update runs (0: measured no better)"""
     freeze_normalizer: bool = False
@@ -909,9 +907,9 @@ class Sampler:
       stats: this epoch's counts (a Counter of numbers; checkpointed, cleared each epoch); goals: this process's
         goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
       check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
-      Args.RESUMABLE (optional; gangstr_hme.py's names the person partner's page), in the sampler's group of
-        Args, which a fork that replaces the group keeps or remakes: the options --resume may change; --resume
-        refuses a change to any other.
+      Args.RESUMABLE, NEEDS, SAME (optional), in the sampler's group of Args, which a fork that replaces the group
+        keeps or remakes: the options --resume may change (it refuses others); flag -> (the flag it needs, why),
+        refused alone; flag -> {value: the value it means}, values --resume takes for each other.
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
     global generator or a generator of the sampler's own): exact --resume and the same run under any split of
     the workers into processes (--num-envs, torchrun) depend on it (SPEC §11).
@@ -923,6 +921,9 @@ class Sampler:
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
         self.stats, self.goals = collections.Counter(), 0
+        classes = og.evaluation_classes(args.n_blocks)  # own goals counted by class (progress.csv: own_S2, ...)
+        self.class_of = {int(m): name for name, configs in classes.items() for m in og.to_mask(configs)}
+        self.own_counts = [f"own_{kind}{name}" for kind in ("", "reached_") for name in classes]
 
     def cycle(self, w: Worker):
         self.stats["cycles"] += 1
@@ -949,6 +950,9 @@ class Sampler:
     def goal_outcome(self, w: Worker, goal: int, reached: bool):
         self.stats["autotelic_goals"] += 1
         self.stats["autotelic_reached"] += reached
+        if (name := self.class_of.get(goal)) is not None:
+            self.stats[f"own_{name}"] += 1
+            self.stats[f"own_reached_{name}"] += reached
 
     def after_cycle(self):
         pass
@@ -957,8 +961,9 @@ class Sampler:
         return {}
 
     def epoch_stats(self) -> dict:
-        counts = summed(self.stats, ["autotelic_goals", "autotelic_reached"])
-        return dict(autotelic_goals_reached=counts["autotelic_reached"] / max(1, counts["autotelic_goals"]))
+        counts = summed(self.stats, ["autotelic_goals", "autotelic_reached", *self.own_counts])
+        reached = counts["autotelic_reached"] / max(1, counts["autotelic_goals"])
+        return dict(autotelic_goals_reached=reached, **{k: counts[k] for k in self.own_counts})
 
     def state_dict(self) -> dict:
         return {}
@@ -1129,9 +1134,8 @@ class Learner:
         workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
         args, infos = self.args, []
         her_prob = 1 - 1 / (1 + args.her_k)
-        # --init-learning-starts (SPEC §10): no update until every worker's replay, in every process, holds that
-        # many segments (all processes update together or none); after a --resume without the saved replays, or in
-        # a resumed torchrun job's other processes (SPEC §10), the replays fill again first
+        # --init-learning-starts (SPEC §10): no update until every worker's replay, in every process, holds that many
+        # segments (all processes update together or none; a resumed job's emptied replays fill again first)
         self.waiting = None  # (segments the smallest replay holds, --init-learning-starts) while no update runs
         if args.init_from and args.init_learning_starts:
             held = int(gather_workers(np.full((args.num_envs, 1), self.buffer.size)).min())

@@ -432,7 +432,7 @@ def reached_by_the_run(module) -> set[str]:
     code = Path(module.__file__).read_text() + (ROOT / "plumbing.py").read_text()
     names = set(re.findall(r"\bsampler\.(\w+)", code))
     names |= {n for n in ("GoalSampler", "check_sampler_args") if re.search(rf"\b{n}\(", code)}
-    names |= {"RESUMABLE"} if '"RESUMABLE"' in code else set()
+    names |= {n for n in ("RESUMABLE", "NEEDS", "SAME") if f'"{n}"' in code}  # the Args fields plumbing reads
     own = {name for name, f in vars(module.Sampler).items() if callable(f) and not name.startswith("_")}
     return names | {n for n in own if re.search(rf"self\.{n}\(", inspect.getsource(module.Sampler))}
 

@@ -10,6 +10,7 @@ import gangstr_hme as gh
 import lp_baseline as lp
 import oracle_graph as og
 import plumbing
+import vds_baseline as vds
 
 N = 3
 
@@ -85,6 +86,21 @@ def test_an_autotelic_attempt_cut_off_by_the_budget_is_neither_success_nor_failu
     stats = run.sampler.stats
     assert (stats["autotelic_goals"], stats["autotelic_reached"]) == (goals, reached)
     assert run.sampler.goals >= 1  # the goal was set and pursued all the same
+
+
+@pytest.mark.parametrize("module", [gh, lp, vds], ids=lambda m: m.__name__)
+def test_own_goals_and_those_reached_are_counted_per_evaluation_class_in_progress_rows(module):
+    run = module.Run(module.Args(n_blocks=N, buffer_size=40, segment_len=4, stable_steps=2), torch.device("cpu"))
+    (w,) = run.workers
+    s2, s3 = (int(og.to_mask(og.evaluation_classes(N)[name][i])) for name, i in (("S2", 1), ("S3", 0)))
+    start = int(og.to_mask(og.make_config(N)))  # the start config: in no class
+    for goal, reached in ((s2, True), (s2, False), (s3, False), (start, True)):
+        run.sampler.goal_outcome(w, goal, reached)
+    row = run.sampler.epoch_stats()
+    own = {k: row[k] for k in row if k.startswith("own_")}
+    want = dict.fromkeys(f"own_{kind}{name}" for kind in ("", "reached_") for name in og.evaluation_classes(N))
+    assert own == {**dict.fromkeys(want, 0), "own_S2": 2, "own_reached_S2": 1, "own_S3": 1}
+    assert row["autotelic_goals_reached"] == 2 / 4  # every own goal, in a class or not
 
 
 @pytest.mark.parametrize(
