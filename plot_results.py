@@ -2,12 +2,13 @@
 """Plot the paper's figures from run folders (SPEC §10: one progress.csv row per epoch).
 
     python plot_results.py --condition SP-20% runs/gangstr_hme__* --condition SP-0% runs/gangstr_sp0__* \
-        --reference SP-0% --out figures [--epochs N]
+        --reference SP-0% --out figures [--epochs N] [--hours H]
 
 Each --condition names a condition and lists its run folders (one per seed). Figures, as PNG and PDF:
 - global_sr: global success rate over episodes, mean +- std over seeds; a star marks the points where
   a condition differs from --reference (Welch's t-test, p < --alpha);
-- sr_per_class: success rate per evaluation class, one panel per class;
+- sr_per_class: success rate per evaluation class, one panel per class; sr_per_class_by_hour: the same over
+  each run's own hours (its epochs' collecting, updating and evaluating seconds; --hours H cuts each run there);
 - sp_per_class: per class, the social partner's proposals (frontier and beyond), the agent's distinct
   encounters, and its success rate over time (first seed-mean of each condition that has proposals);
 - stepping_stones: the stepping stones left, per condition with a social partner;
@@ -18,10 +19,11 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
 - proposals_per_social_cycle, for conditions whose runs had social cycles: per class, the partner's beyond
   and frontier proposals per social cycle over the whole run, one bar per condition (mean, min-max over runs).
 And tables.md, the same runs in numbers (Markdown): SR per class by epoch, the epoch at which each class
-first reaches 0.5, the distinct configs met by epoch, the social partner's proposals and what the agent
-reached of them, and per condition its proposals per social cycle; the configurations discovered per class
-(by epoch, first epoch, Welch's test at the end) and, per run, the help it had (social cycles, the learner's
-queries) beside the first epoch at which it opened each hard class, with the social cycles by then.
+first reaches 0.5 (and the first own hour at 0.5 and at 0.8), the distinct configs met by epoch, the social
+partner's proposals and what the agent reached of them, and per condition its proposals per social cycle; the
+configurations discovered per class (by epoch, first epoch, Welch's test at the end) and, per run, the help it
+had (social cycles, the learner's queries) beside the first epoch at which it opened each hard class, with the
+social cycles by then.
 """
 
 from __future__ import annotations
@@ -73,6 +75,17 @@ def read_run(folder: Path) -> dict[str, np.ndarray]:
 def first_epochs(run: dict, n: int) -> dict:
     """The run's first n epochs (n = 0: all), so that runs of different lengths compare over the same span."""
     return {k: v[:n] if n and isinstance(v, np.ndarray) else v for k, v in run.items()}
+
+
+def own_hours(run: dict) -> np.ndarray:
+    """Hours of the run's own time at each epoch's end: its collecting, updating and evaluating seconds summed
+    (start-up, checkpoints and time stopped left out), the time axis of runs compared at equal compute."""
+    return np.cumsum(run["time_collect"] + run["time_update"] + run["time_eval"]) / 3600
+
+
+def first_hours(run: dict, hours: float) -> dict:
+    """The run's epochs that end within `hours` of its own time (0: all)."""
+    return first_epochs(run, int(np.searchsorted(own_hours(run), hours, side="right"))) if hours else run
 
 
 def stack(runs: list[dict], column: str) -> np.ndarray:
@@ -380,10 +393,13 @@ def epochs_to_show(n: int, count: int = 8) -> list[int]:
     return sorted({round(i * (n - 1) / (count - 1)) for i in range(count)}) if n > 1 else [0]
 
 
-def first_at(values: np.ndarray, level: float = 0.5) -> str:
-    """The first epoch at `level` or more, or how far short the run stayed."""
+def first_at(values: np.ndarray, level: float = 0.5, at: np.ndarray | None = None) -> str:
+    """The first epoch at `level` or more (`at`: that epoch's entry of it, as hours), or how far short the run
+    stayed."""
     hit = np.flatnonzero(values >= level)
-    return str(int(hit[0])) if len(hit) else f"never (max {values.max():.2f})"
+    if not len(hit):
+        return f"never (max {values.max():.2f})"
+    return str(int(hit[0])) if at is None else f"{at[hit[0]]:.2f} h"
 
 
 def tables(conditions: dict, reference: str | None = None) -> str:
@@ -410,6 +426,9 @@ def tables(conditions: dict, reference: str | None = None) -> str:
     out.append(f"\nFirst epoch at SR 0.5 or more (epochs 0-{n - 1}):\n")
     out.append(md_table(["class", *(lab for lab, _ in labelled)],
                         [[cls, *(first_at(r[f"sr_{cls}"][:n]) for _, r in labelled)] for cls in names]))  # fmt: skip
+
+    if all("time_eval" in r for _, r in labelled):
+        out.append(hours_tables(labelled, names))
 
     sizes = {k: len(v) for k, v in og.evaluation_classes(int(labelled[0][1]["n_blocks"])).items()}
     built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
@@ -460,6 +479,38 @@ def tables(conditions: dict, reference: str | None = None) -> str:
     if has_discoveries(conditions):
         out.append(discovery_tables(conditions, labelled, names, sizes, shown, n, reference))
     return "\n".join(out) + "\n"
+
+
+def hours_tables(labelled: list, names: list[str]) -> str:
+    """Per run, the first hour of its own time (own_hours) at which each class's SR reaches 0.5 and 0.8; its
+    hours, epochs, segments and the critic's loss (mean of its last 5 epochs) at its end."""
+    out = ["\nFirst hour of each run's own time (collecting, updating, evaluating) at SR 0.5, then at 0.8:\n"]
+    rows = [[cls, *(" / ".join(first_at(r[f"sr_{cls}"], level, own_hours(r)) for level in (0.5, 0.8))
+                    for _, r in labelled)] for cls in names]  # fmt: skip
+    out.append(md_table(["class", *(lab for lab, _ in labelled)], rows))
+    out.append("\nAt each run's end:\n")
+    rows = [[lab, f"{own_hours(r)[-1]:.2f}", str(len(r["epoch"])), f"{int(r['segments'][-1]):,}",
+             f"{np.nanmean(r['critic_loss'][-5:]):.3g}"] for lab, r in labelled]  # fmt: skip
+    out.append(md_table(["run", "own hours", "epochs", "segments", "critic loss (last 5 epochs)"], rows))
+    return "\n".join(out)
+
+
+def plot_per_class_by_hour(plt, conditions: dict, out: Path):
+    """One panel per class: each run's SR over its own hours (own_hours), a line per run, a color per condition."""
+    names = class_names(next(iter(conditions.values())))
+    fig, axes = panels(plt, len(names), "success rate per class over each run's own hours (a line per seed)")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"] * 4
+    for ax, cls in zip(axes, names, strict=False):
+        for color, (label, runs) in zip(colors, conditions.items(), strict=False):
+            for k, r in enumerate(runs):
+                ax.plot(own_hours(r), r[f"sr_{cls}"], color=color, alpha=0.8, label=label if k == 0 else None)
+        ax.set(title=cls, ylim=(-0.02, 1.02))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.supxlabel("hours of the run's own time")
+    fig.tight_layout()
+    save(fig, out, "sr_per_class_by_hour")
+    plt.close(fig)
 
 
 def discovery_tables(
@@ -535,9 +586,12 @@ def main(argv=None) -> int:
     parser.add_argument("--alpha", type=float, default=0.05, help="significance level of the stars")
     parser.add_argument("--out", default="figures", help="folder for the PNG and PDF files")
     parser.add_argument("--epochs", type=int, default=0, help="only the first N epochs of every run (0: all)")
+    parser.add_argument("--hours", type=float, default=0, help="only the epochs within H hours of each run's own time")
     args = parser.parse_args(argv)
     if args.epochs < 0:
         parser.error(f"--epochs must be 0 (all) or positive, got {args.epochs}")
+    if not (math.isfinite(args.hours) and args.hours >= 0):
+        parser.error(f"--hours must be 0 (all) or positive, got {args.hours}")
     conditions = {}
     for name, *folders in args.condition:
         if not folders:
@@ -545,7 +599,7 @@ def main(argv=None) -> int:
         if name in conditions:
             parser.error(f"--condition {name!r} is given twice")
         try:
-            conditions[name] = [first_epochs(read_run(Path(f)), args.epochs) for f in folders]
+            conditions[name] = [first_hours(first_epochs(read_run(Path(f)), args.epochs), args.hours) for f in folders]
         except ValueError as e:
             parser.error(str(e))  # exit code 2, one line naming the file
     blocks = {int(r["n_blocks"]) for runs in conditions.values() for r in runs}
@@ -566,6 +620,9 @@ def main(argv=None) -> int:
     plot_per_class(plt, conditions, out)
     social = plot_social(plt, conditions, out)
     made = ["global_sr", "sr_per_class"] + (["sp_per_class", "stepping_stones"] if social else [])
+    if all("time_eval" in r for runs in conditions.values() for r in runs):
+        plot_per_class_by_hour(plt, conditions, out)
+        made.append("sr_per_class_by_hour")
     if has_discoveries(conditions):
         plot_discoveries(plt, conditions, out)
         made += ["discovered_per_class", "agent_nodes"]

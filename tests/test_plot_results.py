@@ -16,15 +16,17 @@ import plot_results as pr
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 12, blocks: int = 3):
-    """A run folder with a progress.csv shaped like gangstr_hme.py's (3 blocks unless told)."""
+def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 12, blocks: int = 3,
+             noise: float = 0.02, seconds: tuple[float, float, float] | None = None):  # fmt: skip
+    """A run folder with a progress.csv shaped like gangstr_hme.py's (3 blocks unless told); `seconds`: each
+    epoch's collecting, updating and evaluating seconds, logged as its time columns."""
     rng = np.random.default_rng(seed)
     classes = list(og.evaluation_classes(blocks))
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps({"n_blocks": blocks, "seed": seed}))
     rows = []
     for e in range(epochs):
-        sr = {c: float(np.clip(level * e / epochs + rng.normal(0, 0.02), 0, 1)) for c in classes}
+        sr = {c: float(np.clip(level * e / epochs + rng.normal(0, noise), 0, 1)) for c in classes}
         row = dict(epoch=e, segments=500 * (e + 1), global_sr=np.mean(list(sr.values())))
         row |= {f"sr_{c}": v for c, v in sr.items()}
         row |= {f"encounters_{c}": min(e, 3) for c in classes}
@@ -32,6 +34,8 @@ def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 
             row |= {f"sp_{kind}_{c}": int(social) * int(rng.integers(0, 9)) for c in [*classes, "other"]}
         row["stepping_stones"] = max(0, 30 - 3 * e) if social else 0
         row |= dict(social_share=0.2 * social, rehearsal_share=0.4 * social, internalized_pairs=e * social)
+        if seconds:
+            row |= dict(zip(("time_collect", "time_update", "time_eval"), seconds, strict=True), critic_loss=e)
         rows.append(row)
     with (folder / "progress.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -98,6 +102,7 @@ def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
         (["--condition", "A", "RUN", "--reference", "B"], "'B'"),
         (["--condition", "A", "RUN", "--alpha", "2"], "2.0"),
         (["--condition", "A", "RUN", "--epochs", "-3"], "-3"),
+        (["--condition", "A", "RUN", "--hours", "-1"], "-1.0"),
     ],
 )
 def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
@@ -120,6 +125,22 @@ def test_epochs_cuts_every_run_to_its_first_n_epochs_in_figures_and_tables(tmp_p
     assert "epoch 3 |" in table and "epoch 4 |" not in table  # epochs 0-3, of both runs
     pr.main(["--condition", "L", str(long), "--out", str(tmp_path / "all")])
     assert "epoch 11 |" in (tmp_path / "all" / "tables.md").read_text()  # 0: every epoch
+
+
+def test_hours_cut_each_run_at_its_own_time_and_tables_give_the_first_hour_at_half_and_at_08(tmp_path):
+    # every class's SR is epoch / 12; an epoch takes 0.1 h of its run's own time in one run, 0.2 h in the other
+    fast = fake_run(tmp_path / "fast", 0, 1.0, False, noise=0, seconds=(200, 100, 60))
+    slow = fake_run(tmp_path / "slow", 1, 1.0, False, noise=0, seconds=(400, 200, 120))
+    argv = ["--condition", "F", str(fast), "--condition", "S", str(slow)]
+    pr.main([*argv, "--out", str(tmp_path / "all")])
+    table = (tmp_path / "all" / "tables.md").read_text()
+    assert "| C1 | 0.70 h / 1.10 h | 1.40 h / 2.20 h |" in table  # SR 0.5 at epoch 6, 0.8 at epoch 10
+    assert "| F seed 0 | 1.20 | 12 | 6,000 | 9 |" in table  # its end: hours, epochs, segments, last 5 losses' mean
+    assert (tmp_path / "all" / "sr_per_class_by_hour.png").stat().st_size > 0
+    pr.main([*argv, "--hours", "0.6", "--out", str(tmp_path / "cut")])
+    table = (tmp_path / "cut" / "tables.md").read_text()
+    assert "| F seed 0 | 0.60 | 6 |" in table and "| S seed 1 | 0.60 | 3 |" in table
+    assert "| C1 | never (max 0.42) / never (max 0.42) | never (max 0.17) / never (max 0.17) |" in table
 
 
 def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
@@ -175,10 +196,11 @@ def test_the_committed_social_partner_runs_still_plot_and_tabulate(tmp_path):
     argv = ["--condition", "SP-20%", *map(str, social), "--condition", "SP-0%", *map(str, alone)]
     assert pr.main([*argv, "--reference", "SP-0%", "--out", str(out)]) == 0
     assert sorted(p.stem for p in out.glob("*.png")) == [
-        "global_sr", "proposals_per_social_cycle", "sp_per_class", "sr_per_class", "stepping_stones"
+        "global_sr", "proposals_per_social_cycle", "sp_per_class", "sr_per_class", "sr_per_class_by_hour",
+        "stepping_stones",
     ]  # fmt: skip
-    cells = [line.strip("| ").split(" | ") for line in (out / "tables.md").read_text().splitlines()]
-    first = {row[0]: row[1:] for row in cells if row[0] in ("C1", "S2") and len(row) == len(social) + len(alone) + 1}
+    cells = markdown_table_after((out / "tables.md").read_text(), "First epoch at SR 0.5")
+    first = {row[0]: row[1:] for row in cells if row[0] in ("C1", "S2")}
     for cls in ("C1", "S2"):  # the first epoch at SR 0.5, read from the CSV files directly
         for run, cell in zip([*social, *alone], first[cls], strict=True):
             with (run / "progress.csv").open(newline="") as f:
