@@ -73,11 +73,11 @@ class Args:
     """beyond the paper (SPEC §7.1, learner_query.py): the learner asks the partner for help once its progress
     (--ask-progress) has stalled for this many cycles (0 = it never asks: the coin, --sp-ratio, alone brings it)"""
     help_cycles: int = 3
-    """social cycles in a row that one query of the learner gets at most; the help stops sooner after a
-    social cycle that added no progress (the partner had nothing new to show)"""
+    """with --ask-after (refused without): social cycles in a row one query brings at most; the help stops sooner
+    after a social cycle that added no progress (the partner had nothing new to show)"""
     ask_progress: str = ""
-    """the query's progress: 'nodes' of the semantic graph ('' = nodes), or its SR 'classes' (kinds of transition),
-    which grow for longer and so ask later (first query at epoch 6 against 1 in a pilot: towers came later too)"""
+    """with --ask-after (refused without): the query's progress, 'nodes' of the semantic graph ('' = nodes) or its
+    SR 'classes' (kinds of transition), which grow longer and ask later (first query at epoch 6 against 1 in a pilot)"""
     learner_picks: str = ""
     """beyond the paper: the learner picks among the partner's candidates by 'novelty' (new configs, then unseen
     pairs of facts) or 'zpd' (its surest frontier, then novelty, the critic's hardest); '': uniform (the paper's)"""

@@ -83,9 +83,15 @@ def own_hours(run: dict) -> np.ndarray:
     return np.cumsum(run["time_collect"] + run["time_update"] + run["time_eval"]) / 3600
 
 
-def first_hours(run: dict, hours: float) -> dict:
-    """The run's epochs that end within `hours` of its own time (0: all)."""
-    return first_epochs(run, int(np.searchsorted(own_hours(run), hours, side="right"))) if hours else run
+def first_hours(run: dict, hours: float, folder: str) -> dict:
+    """The run's epochs that end within `hours` of its own time (0: all); ValueError if none does."""
+    if not hours:
+        return run
+    if "time_eval" not in run:
+        raise ValueError(f"{folder!r} logs no time columns: --hours cannot cut it")
+    if not (n := int(np.searchsorted(own_hours(run), hours, side="right"))):
+        raise ValueError(f"{folder!r}: its first epoch ends after --hours {hours} ({own_hours(run)[0]:.2f} h)")
+    return first_epochs(run, n)
 
 
 def stack(runs: list[dict], column: str) -> np.ndarray:
@@ -490,9 +496,14 @@ def hours_tables(labelled: list, names: list[str]) -> str:
     out.append(md_table(["class", *(lab for lab, _ in labelled)], rows))
     out.append("\nAt each run's end:\n")
     rows = [[lab, f"{own_hours(r)[-1]:.2f}", str(len(r["epoch"])), f"{int(r['segments'][-1]):,}",
-             f"{np.nanmean(r['critic_loss'][-5:]):.3g}"] for lab, r in labelled]  # fmt: skip
+             loss_text(r["critic_loss"][-5:])] for lab, r in labelled]  # fmt: skip
     out.append(md_table(["run", "own hours", "epochs", "segments", "critic loss (last 5 epochs)"], rows))
     return "\n".join(out)
+
+
+def loss_text(losses: np.ndarray) -> str:
+    """The mean of the losses logged (nan: an epoch without update), or that no update ran."""
+    return f"{np.nanmean(losses):.3g}" if np.isfinite(losses).any() else "no update"
 
 
 def plot_per_class_by_hour(plt, conditions: dict, out: Path):
@@ -586,7 +597,8 @@ def main(argv=None) -> int:
     parser.add_argument("--alpha", type=float, default=0.05, help="significance level of the stars")
     parser.add_argument("--out", default="figures", help="folder for the PNG and PDF files")
     parser.add_argument("--epochs", type=int, default=0, help="only the first N epochs of every run (0: all)")
-    parser.add_argument("--hours", type=float, default=0, help="only the epochs within H hours of each run's own time")
+    parser.add_argument("--hours", type=float, default=0,
+                        help="only the epochs that end within H hours of each run's own time (0: all)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.epochs < 0:
         parser.error(f"--epochs must be 0 (all) or positive, got {args.epochs}")
@@ -599,7 +611,8 @@ def main(argv=None) -> int:
         if name in conditions:
             parser.error(f"--condition {name!r} is given twice")
         try:
-            conditions[name] = [first_hours(first_epochs(read_run(Path(f)), args.epochs), args.hours) for f in folders]
+            conditions[name] = [first_hours(first_epochs(read_run(Path(f)), args.epochs), args.hours, f)
+                                for f in folders]  # fmt: skip
         except ValueError as e:
             parser.error(str(e))  # exit code 2, one line naming the file
     blocks = {int(r["n_blocks"]) for runs in conditions.values() for r in runs}

@@ -764,7 +764,7 @@ def learning_text(args, critic_loss: float, waiting: tuple[int, int] | None = No
     """What the last cycle's SAC updates did, for the console: the critic loss (nan if it diverged), or that
     none ran (--n-updates 0; with --freeze-normalizer as well, a fixed agent; `waiting`, the learner's (held,
     needed): the replays still filling for --init-learning-starts, where progress.csv logs nan)."""
-    if waiting is not None:
+    if waiting is not None and args.n_updates > 0:
         return f"no SAC update yet: replays filling, {waiting[0]:,} of {waiting[1]:,} segments (--init-learning-starts)"
     if args.n_updates > 0:
         return f"critic loss {critic_loss:.3f}"

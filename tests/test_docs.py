@@ -265,3 +265,15 @@ def test_training_md_lists_every_progress_csv_column_a_tiny_run_writes(script, t
     unwritten = [name for name, p in patterns.items() if not any(p.fullmatch(c) for c in written)]
     assert not undocumented, f"{script} writes columns docs/training.md does not list for it: {undocumented}"
     assert not unwritten, f"docs/training.md lists columns {script} does not write: {unwritten}"
+
+
+def test_every_mutation_in_the_list_breaks_text_that_occurs_once_in_its_file():
+    # benchmarks/mutations.py stops at the first stale entry; held here, a change to the code it breaks shows at once
+    import importlib.util  # noqa: PLC0415
+
+    spec = importlib.util.spec_from_file_location("mutations", ROOT / "benchmarks" / "mutations.py")
+    mutations = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mutations)
+    stale = [(m.name, old[:60]) for m in mutations.MUTATIONS for old, _ in m.edits()
+             if (ROOT / m.file).read_text().count(old) != 1]  # fmt: skip
+    assert not stale, f"mutations whose text does not occur exactly once: {stale}"

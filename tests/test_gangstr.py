@@ -680,6 +680,7 @@ def test_a_fixed_agent_leaves_networks_optimizers_and_normalizer_bit_identical_w
     assert plumbing.learning_text(gh.Args(), math.nan, (3, 50)) == (  # --init-learning-starts: none yet
         "no SAC update yet: replays filling, 3 of 50 segments (--init-learning-starts)"
     )
+    assert plumbing.learning_text(args, math.nan, (3, 50)) == "fixed agent: no SAC update, normalizer frozen"
 
 
 def test_plans_on_real_configs_are_paths_of_configs_along_agent_edges():

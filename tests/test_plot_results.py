@@ -103,6 +103,7 @@ def test_without_a_social_partner_only_the_success_figures_are_drawn(tmp_path):
         (["--condition", "A", "RUN", "--alpha", "2"], "2.0"),
         (["--condition", "A", "RUN", "--epochs", "-3"], "-3"),
         (["--condition", "A", "RUN", "--hours", "-1"], "-1.0"),
+        (["--condition", "A", "RUN", "--hours", "1"], "logs no time columns"),
     ],
 )
 def test_bad_arguments_exit_2_naming_the_value(tmp_path, argv, named, capsys):
@@ -141,6 +142,10 @@ def test_hours_cut_each_run_at_its_own_time_and_tables_give_the_first_hour_at_ha
     table = (tmp_path / "cut" / "tables.md").read_text()
     assert "| F seed 0 | 0.60 | 6 |" in table and "| S seed 1 | 0.60 | 3 |" in table
     assert "| C1 | never (max 0.42) / never (max 0.42) | never (max 0.17) / never (max 0.17) |" in table
+    with pytest.raises(SystemExit) as e:  # within the first epoch: nothing to compare, refused (not every epoch)
+        pr.main([*argv, "--hours", "0.15", "--out", str(tmp_path / "none")])
+    assert e.value.code == 2 and not (tmp_path / "none").exists()
+    assert pr.loss_text(np.full(5, np.nan)) == "no update" and pr.loss_text(np.array([np.nan, 2.0, 4.0])) == "3"
 
 
 def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
