@@ -23,7 +23,8 @@ first reaches 0.5 (and the first own hour at 0.5 and at 0.8), the distinct confi
 partner's proposals and what the agent reached of them, and per condition its proposals per social cycle; the
 configurations discovered per class (by epoch, first epoch, Welch's test at the end) and, per run, the help it
 had (social cycles, the learner's queries) beside the first epoch at which it opened each hard class, with the
-social cycles by then.
+social cycles by then; for runs that log their own goals per class, why each construction comes late (discovery,
+practice or skill: practice_tables).
 """
 
 from __future__ import annotations
@@ -435,6 +436,8 @@ def tables(conditions: dict, reference: str | None = None) -> str:
 
     if all("time_eval" in r for _, r in labelled):
         out.append(hours_tables(labelled, names))
+    if all("own_C1" in r and "time_eval" in r for _, r in labelled):
+        out.append(practice_tables(labelled, [c for c in names if not c.startswith("C")]))
 
     sizes = {k: len(v) for k, v in og.evaluation_classes(int(labelled[0][1]["n_blocks"])).items()}
     built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
@@ -498,6 +501,38 @@ def hours_tables(labelled: list, names: list[str]) -> str:
     rows = [[lab, f"{own_hours(r)[-1]:.2f}", str(len(r["epoch"])), f"{int(r['segments'][-1]):,}",
              loss_text(r["critic_loss"][-5:])] for lab, r in labelled]  # fmt: skip
     out.append(md_table(["run", "own hours", "epochs", "segments", "critic loss (last 5 epochs)"], rows))
+    return "\n".join(out)
+
+
+def practice_tables(labelled: list, built: list[str]) -> str:
+    """Why a construction class comes late, per run and class: the first epoch (and own hour) at which one of its
+    configs was met and at which one became an agent-graph node (discovery); the goals of the class the agent
+    pursued, its own, the partner's frontier and beyond goals (practice); the share of those it reached in
+    training (skill in training); and the evaluation SR, its best and its first hour at 0.5."""
+    out = ["\nWhy the constructions come late, per run and class: first epoch (own hour) a config was met, first "
+           "epoch one was a graph node; goals pursued over the run, the agent's own + the partner's frontier + "
+           "beyond, and the share reached in training of each; the evaluation SR's best and its first hour at "
+           "0.5:\n"]  # fmt: skip
+
+    def first(values, hours):
+        hit = np.flatnonzero(values > 0)
+        return f"{int(hit[0])} ({hours[hit[0]]:.2f} h)" if len(hit) else "never"
+
+    def share(reached, pursued):
+        return f"{np.nansum(reached) / np.nansum(pursued):.2f}" if np.nansum(pursued) else "-"
+
+    rows = []
+    for cls in built:
+        for lab, r in labelled:
+            h = own_hours(r)
+            pursued = [r[f"own_{cls}"], r[f"sp_frontier_{cls}"], r[f"sp_beyond_{cls}"]]
+            reached = [r[f"own_reached_{cls}"], r[f"sp_frontier_arrived_{cls}"], r[f"sp_beyond_reached_{cls}"]]
+            rows.append([cls, lab, first(r[f"encounters_{cls}"], h), first(r[f"agent_nodes_{cls}"], h),
+                         " + ".join(str(int(np.nansum(v))) for v in pursued),
+                         " / ".join(share(a, b) for a, b in zip(reached, pursued, strict=True)),
+                         f"{r[f'sr_{cls}'].max():.2f}", first_at(r[f"sr_{cls}"], 0.5, h)])  # fmt: skip
+    out.append(md_table(["class", "run", "first met", "first node", "pursued (own + frontier + beyond)",
+                         "reached in training", "SR best", "SR 0.5 at"], rows))  # fmt: skip
     return "\n".join(out)
 
 

@@ -334,3 +334,26 @@ def test_first_discovery_of_each_hard_class_reads_epoch_and_social_cycles_up_to_
     assert hard["SP-20% seed 1"] == {"S3": "4 (35)", "S2&S2": "—", "S2&S3": "—", "P3&S2": "0 (10)", "S4": "2 (15)",
                                      "S5": "—"}  # fmt: skip
     assert hard["SP-20% seed 2"] == dict.fromkeys(pr.HARD, "—") | {"S2&S2": "3 (40)"}
+
+
+def test_practice_table_gives_per_construction_class_its_discovery_its_goals_pursued_and_reached_and_its_sr(tmp_path):
+    # S2: first met at epoch 2 and a graph node from epoch 4; each epoch 10 own goals (1 reached), 4 frontier
+    # goals (2 arrived) and 1 beyond goal (never reached); an epoch takes 0.1 h; S3 and P3 never met
+    run = fake_run(tmp_path / "a", 0, 1.0, True, noise=0, seconds=(200, 100, 60))
+    with (run / "progress.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    for e, row in enumerate(rows):
+        for c in og.evaluation_classes(3):
+            s2 = c == "S2"
+            row |= {f"encounters_{c}": int(s2 and e >= 2), f"agent_nodes_{c}": int(s2 and e >= 4), "agent_nodes": 4}
+            row |= {f"own_{c}": 10 * s2, f"own_reached_{c}": int(s2), f"sp_frontier_{c}": 4 * s2}
+            row |= {f"sp_frontier_arrived_{c}": 2 * s2, f"sp_beyond_{c}": int(s2), f"sp_beyond_reached_{c}": 0}
+    with (run / "progress.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    pr.main(["--condition", "A", str(run), "--out", str(tmp_path / "out")])
+    table = (tmp_path / "out" / "tables.md").read_text()
+    assert "| S2 | A seed 0 | 2 (0.30 h) | 4 (0.50 h) | 120 + 48 + 12 | 0.10 / 0.50 / 0.00 | 0.92 | 0.70 h |" in table
+    assert "| S3 | A seed 0 | never | never | 0 + 0 + 0 | - / - / - | 0.92 | 0.70 h |" in table
+    assert "| C1 | A seed 0 |" not in table.split("Why the constructions")[1].split("\n\n")[1]  # constructions only
