@@ -436,11 +436,11 @@ def tables(conditions: dict, reference: str | None = None) -> str:
 
     if all("time_eval" in r for _, r in labelled):
         out.append(hours_tables(labelled, names))
+    built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
     if all("own_C1" in r and "time_eval" in r for _, r in labelled):
-        out.append(practice_tables(labelled, [c for c in names if not c.startswith("C")]))
+        out.append(practice_tables(labelled, built))
 
     sizes = {k: len(v) for k, v in og.evaluation_classes(int(labelled[0][1]["n_blocks"])).items()}
-    built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
     out.append(f"\nDistinct configs met by epoch ({' / '.join(f'{c} of {sizes[c]}' for c in built)}):\n")
     out.append(md_table(["run", *(f"epoch {e}" for e in shown)],
                         [[lab, *("/".join(str(int(r[f"encounters_{c}"][e])) for c in built) for e in shown)]
@@ -524,9 +524,10 @@ def practice_tables(labelled: list, built: list[str]) -> str:
     rows = []
     for cls in built:
         for lab, r in labelled:
-            h = own_hours(r)
-            pursued = [r[f"own_{cls}"], r[f"sp_frontier_{cls}"], r[f"sp_beyond_{cls}"]]
-            reached = [r[f"own_reached_{cls}"], r[f"sp_frontier_arrived_{cls}"], r[f"sp_beyond_reached_{cls}"]]
+            h, none = own_hours(r), np.zeros(len(r["epoch"]))  # a baseline's run logs no partner's goals
+            pursued = [r[f"own_{cls}"], r.get(f"sp_frontier_{cls}", none), r.get(f"sp_beyond_{cls}", none)]
+            partner = (r.get(f"sp_{k}_{cls}", none) for k in ("frontier_arrived", "beyond_reached"))
+            reached = [r[f"own_reached_{cls}"], *partner]
             rows.append([cls, lab, first(r[f"encounters_{cls}"], h), first(r[f"agent_nodes_{cls}"], h),
                          " + ".join(str(int(np.nansum(v))) for v in pursued),
                          " / ".join(share(a, b) for a, b in zip(reached, pursued, strict=True)),

@@ -14,6 +14,7 @@ at 3 blocks; the other classes are two steps or more away, so their 'reached' is
 A checkpoint of gangstr_hme.py, or the paper's file; the environment's seeds are 1000 + episode.
 """
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,33 +27,33 @@ import gangstr_hme as G  # noqa: E402
 import oracle_graph as og  # noqa: E402
 import plumbing  # noqa: E402
 
-REST_Z = 0.425  # a block's centre resting on the table (SPEC §3)
-LIFTED = REST_Z + 0.025  # half a block higher
+REST_Z = fetch5_env.TABLE_Z + fetch5_env.BLOCK_HALF  # a block's centre resting on the table (SPEC §3)
+LIFTED = REST_Z + fetch5_env.BLOCK_HALF  # half a block higher
 
 
 def probe(state: dict, path: str, classes: list[str], episodes: int, seed: int) -> list[tuple]:
-    """(class, policy, goals reached, episodes with a block lifted, median highest block) per class and policy."""
-    args = G.Args(n_blocks=plumbing.blocks_of(state), plain=True)  # the nets and the segment's length
-    env = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks)
-    obs, _ = env.reset(seed=seed)
-    agent = G.SAC(args, obs["observation"].shape[0], "cpu")
+    """(class, policy, goals reached, episodes with a block lifted, median highest block) per class and policy.
+    Both policies pursue the same goals from the same resets; the stochastic one's noise has its own stream."""
+    paper = state.get("format") == "paper"  # the paper's file holds no arguments: the defaults' segment length
+    args = G.Args(n_blocks=state["n_blocks"]) if paper else G.Args(**state["args"])
+    args = dataclasses.replace(args, plain=True, init_from="")  # acting only: no speed trick, the rates unscaled
+    agent = G.SAC(args, fetch5_env.obs_size(args.n_blocks), "cpu")
     plumbing.load_weights(agent, state, args, path, "checkpoint")  # as --init-from loads them
-    members, rng, rows = og.evaluation_classes(args.n_blocks), np.random.default_rng(seed), []
-    z = 10 + 15 * np.arange(args.n_blocks) + 2  # each block's height in the observation (SPEC §3)
+    env, members, rows = fetch5_env.FetchManipulateEnv(n_blocks=args.n_blocks), og.evaluation_classes(args.n_blocks), []
     for cls in classes:
+        goals = members[cls][np.random.default_rng(seed).integers(len(members[cls]), size=episodes)]
         for policy in ("deterministic", "stochastic"):
-            reached, highest = 0, []
-            for e in range(episodes):
-                goal = members[cls][rng.integers(len(members[cls]))]
+            noise_rng, reached, highest = np.random.default_rng([seed, 1]), 0, []
+            for e, goal in enumerate(goals):
                 obs, _ = env.reset(seed=1000 + e, options={"goal": goal})
                 top = REST_Z
                 for _ in range(args.segment_len):
-                    noise = None if policy == "deterministic" else rng.standard_normal((1, 4)).astype(np.float32)
+                    noise = None if policy == "deterministic" else noise_rng.standard_normal((1, 4)).astype(np.float32)
                     f32 = {k: v[None].astype(np.float32) for k, v in obs.items()}
                     action = agent.act(f32["observation"], f32["achieved_goal"], f32["desired_goal"], noise)[0]
                     obs, reward, *_ = env.step(action)
-                    top = max(top, float(obs["observation"][z].max()))
-                reached += bool(reward)
+                    top = max(top, float(env.block_positions()[:, 2].max()))
+                reached += bool(reward)  # the segment's last step: success as training counts it (SPEC §6)
                 highest.append(top)
             lifted = int((np.array(highest) >= LIFTED).sum())
             rows.append((cls, policy, reached, lifted, float(np.median(highest))))

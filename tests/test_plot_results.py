@@ -357,3 +357,13 @@ def test_practice_table_gives_per_construction_class_its_discovery_its_goals_pur
     assert "| S2 | A seed 0 | 2 (0.30 h) | 4 (0.50 h) | 120 + 48 + 12 | 0.10 / 0.50 / 0.00 | 0.92 | 0.70 h |" in table
     assert "| S3 | A seed 0 | never | never | 0 + 0 + 0 | - / - / - | 0.92 | 0.70 h |" in table
     assert "| C1 | A seed 0 |" not in table.split("Why the constructions")[1].split("\n\n")[1]  # constructions only
+    for row in rows:  # a baseline's run (lp_baseline.py, vds_baseline.py): its own goals, no partner's
+        for k in [k for k in row if k.startswith("sp_")]:
+            del row[k]
+    with (run / "progress.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    pr.main(["--condition", "A", str(run), "--out", str(tmp_path / "baseline")])
+    table = (tmp_path / "baseline" / "tables.md").read_text()
+    assert "| S2 | A seed 0 | 2 (0.30 h) | 4 (0.50 h) | 120 + 0 + 0 | 0.10 / - / - | 0.92 | 0.70 h |" in table
