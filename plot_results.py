@@ -437,7 +437,7 @@ def tables(conditions: dict, reference: str | None = None) -> str:
     if all("time_eval" in r for _, r in labelled):
         out.append(hours_tables(labelled, names))
     built = [c for c in names if not c.startswith("C")]  # stacks and pyramids: the constructions
-    if all("own_C1" in r and "time_eval" in r for _, r in labelled):
+    if all("time_eval" in r and "agent_nodes_C1" in r for _, r in labelled):
         out.append(practice_tables(labelled, built))
 
     sizes = {k: len(v) for k, v in og.evaluation_classes(int(labelled[0][1]["n_blocks"])).items()}
@@ -508,7 +508,8 @@ def practice_tables(labelled: list, built: list[str]) -> str:
     """Why a construction class comes late, per run and class: the first epoch (and own hour) at which one of its
     configs was met and at which one became an agent-graph node (discovery); the goals of the class the agent
     pursued, its own, the partner's frontier and beyond goals (practice); the share of those it reached in
-    training (skill in training); and the evaluation SR, its best and its first hour at 0.5."""
+    training (skill in training); and the evaluation SR, its best and its first hour at 0.5. A count the run does
+    not log (a baseline's partner, own goals before they were logged) is '-'."""
     out = ["\nWhy the constructions come late, per run and class: first epoch (own hour) a config was met, first "
            "epoch one was a graph node; goals pursued over the run, the agent's own + the partner's frontier + "
            "beyond, and the share reached in training of each; the evaluation SR's best and its first hour at "
@@ -518,18 +519,20 @@ def practice_tables(labelled: list, built: list[str]) -> str:
         hit = np.flatnonzero(values > 0)
         return f"{int(hit[0])} ({hours[hit[0]]:.2f} h)" if len(hit) else "never"
 
+    def count(v):
+        return "-" if np.isnan(v).all() else str(int(np.nansum(v)))
+
     def share(reached, pursued):
         return f"{np.nansum(reached) / np.nansum(pursued):.2f}" if np.nansum(pursued) else "-"
 
     rows = []
     for cls in built:
         for lab, r in labelled:
-            h, none = own_hours(r), np.zeros(len(r["epoch"]))  # a baseline's run logs no partner's goals
-            pursued = [r[f"own_{cls}"], r.get(f"sp_frontier_{cls}", none), r.get(f"sp_beyond_{cls}", none)]
-            partner = (r.get(f"sp_{k}_{cls}", none) for k in ("frontier_arrived", "beyond_reached"))
-            reached = [r[f"own_reached_{cls}"], *partner]
+            h, none = own_hours(r), np.full(len(r["epoch"]), np.nan)
+            pursued = [r.get(f"{k}_{cls}", none) for k in ("own", "sp_frontier", "sp_beyond")]
+            reached = [r.get(f"{k}_{cls}", none) for k in ("own_reached", "sp_frontier_arrived", "sp_beyond_reached")]
             rows.append([cls, lab, first(r[f"encounters_{cls}"], h), first(r[f"agent_nodes_{cls}"], h),
-                         " + ".join(str(int(np.nansum(v))) for v in pursued),
+                         " + ".join(count(v) for v in pursued),
                          " / ".join(share(a, b) for a, b in zip(reached, pursued, strict=True)),
                          f"{r[f'sr_{cls}'].max():.2f}", first_at(r[f"sr_{cls}"], 0.5, h)])  # fmt: skip
     out.append(md_table(["class", "run", "first met", "first node", "pursued (own + frontier + beyond)",
