@@ -37,11 +37,16 @@ def fake_run(folder: Path, seed: int, level: float, social: bool, epochs: int = 
         if seconds:
             row |= dict(zip(("time_collect", "time_update", "time_eval"), seconds, strict=True), critic_loss=e)
         rows.append(row)
+    write_rows(folder, rows)
+    return folder
+
+
+def write_rows(folder: Path, rows: list[dict]):
+    """rows as the run folder's progress.csv."""
     with (folder / "progress.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    return folder
 
 
 def test_plots_are_written_as_png_and_pdf_for_several_conditions_and_seeds(tmp_path):
@@ -348,10 +353,7 @@ def test_practice_table_gives_per_construction_class_its_discovery_its_goals_pur
             row |= {f"encounters_{c}": int(s2 and e >= 2), f"agent_nodes_{c}": int(s2 and e >= 4), "agent_nodes": 4}
             row |= {f"own_{c}": 10 * s2, f"own_reached_{c}": int(s2), f"sp_frontier_{c}": 4 * s2}
             row |= {f"sp_frontier_arrived_{c}": 2 * s2, f"sp_beyond_{c}": int(s2), f"sp_beyond_reached_{c}": 0}
-    with (run / "progress.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(run, rows)
     pr.main(["--condition", "A", str(run), "--out", str(tmp_path / "out")])
     table = (tmp_path / "out" / "tables.md").read_text()
     assert "| S2 | A seed 0 | 2 (0.30 h) | 4 (0.50 h) | 120 + 48 + 12 | 0.10 / 0.50 / 0.00 | 0.92 | 0.70 h |" in table
@@ -360,10 +362,7 @@ def test_practice_table_gives_per_construction_class_its_discovery_its_goals_pur
     for row in rows:  # a baseline's run (lp_baseline.py, vds_baseline.py): its own goals, no partner's
         for k in [k for k in row if k.startswith("sp_")]:
             del row[k]
-    with (run / "progress.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(run, rows)
     pr.main(["--condition", "A", str(run), "--out", str(tmp_path / "baseline")])
     table = (tmp_path / "baseline" / "tables.md").read_text()
     assert "| S2 | A seed 0 | 2 (0.30 h) | 4 (0.50 h) | 120 + - + - | 0.10 / - / - | 0.92 | 0.70 h |" in table
