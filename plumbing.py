@@ -142,7 +142,7 @@ def check_args(a, check_sampler_args) -> str | None:
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts"):
+    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts", "alpha"):
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
@@ -150,8 +150,6 @@ def check_args(a, check_sampler_args) -> str | None:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
     if not 0 <= a.seed < 2**32:
         return f"--seed must be in [0, 2**32), got {a.seed}"
-    if a.alpha < 0:
-        return f"--alpha must be non-negative, got {a.alpha}"
     for name in ("lr_actor", "lr_critic", "init_lr_scale"):
         if getattr(a, name) <= 0:
             return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
@@ -1110,7 +1108,9 @@ class RunFolder:
         self.saved_at, self.before_evaluation = None, None  # (epoch, cycle) the checkpoint holds; see evaluate
         self.before_cycle = None  # see cycle
         device = run.learner.agent.device
-        progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device}", final=True)
+        rates, paper = (args.lr_actor, args.lr_critic), (type(args).lr_actor, type(args).lr_critic)  # SPEC §12
+        progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device} | rates "
+                 f"{rates[0]:g} / {rates[1]:g} ({'paper' if rates == paper else 'given'})", final=True)  # fmt: skip
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 

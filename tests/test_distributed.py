@@ -164,6 +164,12 @@ def test_only_worker_0_writes_the_run_folder_and_its_checkpoint_once(workers):
     assert state["counters"]["epoch"] == 2
 
 
+def test_two_workers_in_two_processes_or_one_learn_at_the_papers_rates_and_the_first_line_says_so(workers, lockstep):
+    _, (r0, r1), stdout = workers  # no rate given: as for one worker (SPEC §12)
+    assert r0["rates"].tolist() == r1["rates"].tolist() == lockstep["rates"].tolist() == [1e-3, 1e-3]
+    assert "| 2 worker(s) on cpu | rates 0.001 / 0.001 (paper)" in stdout
+
+
 def test_a_single_process_needs_no_launcher():
     proc = subprocess.run([sys.executable, "-c", "import gangstr_hme as g; print(g.world(), g.rank())"], cwd=ROOT,
                           capture_output=True, text=True, timeout=60)  # fmt: skip
