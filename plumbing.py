@@ -93,15 +93,19 @@ def make_parser(Args: type, with_defaults: bool = True) -> argparse.ArgumentPars
     return parser
 
 
+RATES, FEW_WORKERS, FEW_SCALE = ("lr_actor", "lr_critic"), 24, 0.3  # SPEC §12: below 24 workers, x0.3 (measured)
+
+
 def parse_args(Args: type, check_sampler_args, argv=None):
-    """The script's Args from the command line, or exit 2 with one line naming the first bad value."""
-    parser = make_parser(Args)
-    args = Args(**vars(parser.parse_args(argv)))
-    given = given_flags(Args, argv)
-    problem = check_args(args, check_sampler_args) or check_init_flags(args, given) or check_needs(args, given)
-    if problem:
+    """The script's Args from the command line, or exit 2 with one line naming the first bad value. Rates not given
+    are x0.3 of the paper's below 24 workers (--num-envs x processes), unless --paper-rates or --init-from (§10)."""
+    parser, world_size = make_parser(Args), int(os.environ.get("WORLD_SIZE", "1"))  # torchrun's processes
+    a, given = Args(**vars(parser.parse_args(argv))), given_flags(Args, argv)  # --help: the parser with defaults
+    if a.num_envs * world_size < FEW_WORKERS and not (a.paper_rates or a.init_from):
+        a = dataclasses.replace(a, **{k: getattr(a, k) * FEW_SCALE for k in RATES if k not in given})
+    if problem := check_args(a, check_sampler_args) or check_init_flags(a, given) or check_needs(a, given):
         parser.error(problem)  # exit code 2, the message names the value
-    return args
+    return a
 
 
 def check_init_flags(a, given: set[str]) -> str | None:
@@ -568,13 +572,8 @@ def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
 # unpickler (under the name numpy 1, the authors', wrote, and numpy 2's), the array and dtype classes and
 # the float32 dtype: float32 arrays and nothing else.
 _reconstruct = np.zeros(0, np.float32).__reduce__()[0]
-PAPER_GLOBALS = [
-    (_reconstruct, "numpy.core.multiarray._reconstruct"),
-    (_reconstruct, "numpy._core.multiarray._reconstruct"),
-    np.ndarray,
-    np.dtype,
-    type(np.dtype(np.float32)),
-]
+PAPER_GLOBALS = [*((_reconstruct, f"numpy.{core}.multiarray._reconstruct") for core in ("core", "_core")),
+                 np.ndarray, np.dtype, type(np.dtype(np.float32))]  # fmt: skip
 PAPER_LAYERS = (  # (the authors' layer, our network and layer): SPEC §5's roles in order. Two layers of theirs
     # mapped to one of ours are stacked in this order: our head's mean rows above its log-std rows.
     ("phi_actor.linear1", "actor", "node.hidden"),
@@ -1109,8 +1108,9 @@ class RunFolder:
         self.before_cycle = None  # see cycle
         device = run.learner.agent.device
         rates, paper = (args.lr_actor, args.lr_critic), (type(args).lr_actor, type(args).lr_critic)  # SPEC §12
+        whose = {paper: "paper", tuple(r * FEW_SCALE for r in paper): f"x{FEW_SCALE:g}: below {FEW_WORKERS} workers"}
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device} | rates "
-                 f"{rates[0]:g} / {rates[1]:g} ({'paper' if rates == paper else 'given'})", final=True)  # fmt: skip
+                 f"{rates[0]:g} / {rates[1]:g} ({whose.get(rates, 'given')})", final=True)  # fmt: skip
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 

@@ -84,9 +84,11 @@ class Args:
     target_update_every: int = 2
     """SAC updates between soft target updates"""
     lr_actor: float = 1e-3
-    """actor learning rate (Adam)"""
+    """actor learning rate (Adam; the paper's; x0.3 with fewer than 24 workers unless given, SPEC §12)"""
     lr_critic: float = 1e-3
-    """critic learning rate (Adam)"""
+    """critic learning rate (Adam; as --lr-actor)"""
+    paper_rates: bool = False
+    """the paper's rates however few the workers (by default x0.3 of them below 24 workers, SPEC §12)"""
     # --- the semantic graph and its paths (SPEC §6) ---
     sr_ema: float = 0.01
     """EMA rate of an edge's success-rate estimate"""
@@ -1106,7 +1108,6 @@ class Learner:
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.segments = 0  # every worker's, so far
         self.plan_seconds = 0.0  # planning + graph updates this epoch, for the speed report
-        self.waiting = None  # see train
 
     def learn_from(self, per_worker: list[list[Segment]]):
         """Store each worker's segments (per_worker[i]: worker i's, as many for each) in its replay, update
@@ -1135,10 +1136,9 @@ class Learner:
         her_prob = 1 - 1 / (1 + args.her_k)
         # --init-learning-starts (SPEC §10): no update until every worker's replay, in every process, holds that many
         # segments (all processes update together or none; a resumed job's emptied replays fill again first)
-        self.waiting = None  # (segments the smallest replay holds, --init-learning-starts) while no update runs
-        if args.init_from and args.init_learning_starts:
-            held = int(gather_workers(np.full((args.num_envs, 1), self.buffer.size)).min())
-            self.waiting = (held, args.init_learning_starts) if held < args.init_learning_starts else None
+        n = args.init_learning_starts if args.init_from else 0
+        held = int(gather_workers(np.full((args.num_envs, 1), self.buffer.size)).min()) if n else 0
+        self.waiting = (held, n) if held < n else None  # (segments the smallest replay holds, n) while no update runs
         for _ in range(args.n_updates if self.buffer.size and not self.waiting else 0):
             info = self.agent.update(self.buffer.sample(args.batch_size, rngs, her_prob, args.her_strategy))
             infos.append(info | after_update(self.agent.last_batch, self.agent.last_target))

@@ -90,9 +90,6 @@ def main(out: Path, num_envs: int):
         help_cycles=run.sampler.stats["help_cycles"],
         losses={k: torch.tensor([m[k] for m in logged]) for k in logged[0]},
         waiting=torch.tensor(waiter.waiting or (-1, -1)),
-        rates=torch.tensor(
-            [o.param_groups[0]["lr"] for o in (learner.agent.actor_opt, learner.agent.critic_opt)], dtype=torch.float64
-        ),
     )
     torch.save(saved, out / f"{'lockstep' if num_envs > 1 else 'rank'}{r}.pt")
     if num_envs > 1:

@@ -164,10 +164,13 @@ def test_only_worker_0_writes_the_run_folder_and_its_checkpoint_once(workers):
     assert state["counters"]["epoch"] == 2
 
 
-def test_two_workers_in_two_processes_or_one_learn_at_the_papers_rates_and_the_first_line_says_so(workers, lockstep):
-    _, (r0, r1), stdout = workers  # no rate given: as for one worker (SPEC §12)
-    assert r0["rates"].tolist() == r1["rates"].tolist() == lockstep["rates"].tolist() == [1e-3, 1e-3]
-    assert "| 2 worker(s) on cpu | rates 0.001 / 0.001 (paper)" in stdout
+def test_a_torchrun_run_of_two_workers_learns_at_three_tenths_of_the_papers_rates_and_says_so(workers):
+    out, _, stdout = workers  # its command line gives no rate (SPEC §12: below 24 workers, x0.3)
+    assert "| 2 worker(s) on cpu | rates 0.0003 / 0.0003 (x0.3: below 24 workers)" in stdout
+    (run,) = (out / "runs").iterdir()
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    rates = [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")]
+    assert rates == pytest.approx([3e-4, 3e-4], rel=1e-12) and state["args"]["lr_actor"] == rates[0]
 
 
 def test_a_single_process_needs_no_launcher():
