@@ -76,8 +76,8 @@ class Args:
     """with --ask-after (refused without): social cycles in a row one query brings at most; the help stops sooner
     after a social cycle that added no progress (the partner had nothing new to show)"""
     ask_progress: str = ""
-    """with --ask-after (refused without): the query's progress, 'nodes' of the semantic graph ('' = nodes) or its
-    SR 'classes' (kinds of transition), which grow longer and ask later (first query at epoch 6 against 1 in a pilot)"""
+    """with --ask-after (refused without): the query's progress, 'nodes' of the semantic graph ('' = nodes) or its SR
+    'classes' (kinds of transition): they grow longer, so it asks later (a pilot: epoch 6, not 1; towers later too)"""
     learner_picks: str = ""
     """beyond the paper: the learner picks among the partner's candidates by 'novelty' (new configs, then unseen
     pairs of facts) or 'zpd' (its surest frontier, then novelty, the critic's hardest); '': uniform (the paper's)"""
@@ -121,12 +121,12 @@ class Args:
     """target networks keep this share of their weights at each soft update"""
     target_update_every: int = 2
     """SAC updates between soft target updates"""
-    lr_actor: float = 1e-3
-    """actor learning rate (Adam; the paper's; x0.3 with fewer than 24 workers unless given, SPEC §12)"""
-    lr_critic: float = 1e-3
-    """critic learning rate (Adam; as --lr-actor)"""
+    lr_actor: float = 0.0
+    """actor learning rate (Adam); 0: by SPEC §12's rule, the paper's 1e-3 at 24 workers or more, x0.3 below"""
+    lr_critic: float = 0.0
+    """critic learning rate (Adam); 0: as --lr-actor's"""
     paper_rates: bool = False
-    """the paper's rates however few the workers (by default x0.3 of them below 24 workers, SPEC §12)"""
+    """the paper's rates however few the workers (the rates not given; refused with --init-from, SPEC §12)"""
     # --- the semantic graph and its paths (SPEC §6) ---
     sr_ema: float = 0.01
     """EMA rate of an edge's success-rate estimate"""
@@ -146,8 +146,8 @@ class Args:
     max_eval_subgoals: int = 9
     """sub-goal segments an evaluation episode may use"""
     eval_only: bool = False
-    """evaluate the --checkpoint (SR per class, printed and saved beside it; the paper's file's in --runs-dir) and
-    exit; no training"""
+    """evaluate the --checkpoint and exit, no training: SR per class, printed and saved beside the checkpoint (for
+    the paper's file, which is read-only in its cache, in --runs-dir)"""
     checkpoint: str = ""
     """checkpoint to evaluate with --eval-only (paper: the authors' agent, fetched once into a cache)"""
     plan_on: str = "agent"
@@ -177,10 +177,11 @@ class Args:
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     init_lr_scale: float = 0.1
     """with --init-from: both learning rates are multiplied by this; at one worker the paper's rates (1) lost the
-    paper's agent, 0.2 kept S5 at 0.43-0.82 over 10 epochs, 0.1 at 0.80-0.92 (docs/results.md)"""
+    paper's agent, 0.2 (Adam's square-root rule for its batch) kept S5 at 0.43-0.82 over 10 epochs and 0.1 at
+    0.80-0.92 (docs/results.md, "Continuing the paper's training")"""
     init_warmup: int = 2000
-    """with --init-from: SAC updates over which both learning rates rise linearly from 0 (a fresh Adam's first steps
-    move every weight by about lr; 2,000 = 2 / (1 - beta2), Ma and Yarats 2021's untuned warm-up); 0: none"""
+    """with --init-from: SAC updates over which both rates rise linearly from 0 (a fresh Adam's first steps move every
+    weight by about lr, a trained net's too; 2,000 = 2 / (1 - beta2): Ma and Yarats 2021's untuned warm-up); 0: none"""
     init_learning_starts: int = 0
     """with --init-from: segments every worker's replay holds before a SAC update runs (0: measured no better)"""
     freeze_normalizer: bool = False
@@ -422,10 +423,9 @@ class SAC:
         broadcast_params(self.actor, self.critic)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.acting_actor, self.acting_critic = speed.weight_view(self.actor), speed.weight_view(self.critic)
-        # After --init-from (SPEC §10): Adam's rates scaled down (--init-lr-scale), reached by a warm-up (update)
-        scale = args.init_lr_scale if args.init_from else 1.0
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.lr_actor * scale)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=args.lr_critic * scale)
+        (lr_actor, _), (lr_critic, _) = plumbing.adam_rates(args)  # SPEC §12 (after --init-from, §10; see update)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=lr_actor)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=lr_critic)
         self.lrs = [g["lr"] for g in (*self.actor_opt.param_groups, *self.critic_opt.param_groups)]  # each group's
         self.normalizer = Normalizer(obs_dim)
         self.n_updates = 0
@@ -948,9 +948,10 @@ class Sampler:
       stats: this epoch's counts (a Counter of numbers; checkpointed, cleared each epoch); goals: this process's
         goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
       check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
-      Args.RESUMABLE, NEEDS, SAME (optional), in the sampler's group of Args, which a fork that replaces the group
-        keeps or remakes: the options --resume may change (it refuses others); flag -> (the flag it needs, why),
-        refused alone; flag -> {value: the value it means}, values --resume takes for each other.
+      Args.RESUMABLE (optional, as NEEDS and SAME; in the sampler's group of Args, kept or remade by a fork that
+        replaces the group): the sampler's options --resume may change (it refuses any other), as a page's address.
+      Args.NEEDS: flag -> (the flag it needs, why): a flag that would do nothing, given alone, is refused.
+      Args.SAME: flag -> {value: the value it means}: values --resume takes for each other ('' for 'nodes').
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's
     global generator or a generator of the sampler's own): exact --resume and the same run under any split of
     the workers into processes (--num-envs, torchrun) depend on it (SPEC §11).
@@ -962,9 +963,9 @@ class Sampler:
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
         self.stats, self.goals = collections.Counter(), 0
-        classes = og.evaluation_classes(args.n_blocks)  # own goals counted by class (progress.csv: own_S2, ...)
-        self.class_of = {int(m): name for name, configs in classes.items() for m in og.to_mask(configs)}
-        self.own_counts = [f"own_{kind}{name}" for kind in ("", "reached_") for name in classes]
+        self.classes = og.evaluation_classes(args.n_blocks)  # goals counted by class (progress.csv: own_S2, ...)
+        self.class_of = {int(m): name for name, configs in self.classes.items() for m in og.to_mask(configs)}
+        self.own_counts = [f"own_{kind}{name}" for kind in ("", "reached_") for name in self.classes]
 
     def cycle(self, w: Worker):
         self.stats["cycles"] += 1
@@ -1045,7 +1046,7 @@ class GoalSampler(Sampler):
             if args.learner_picks:  # the learner picks among the partner's candidates
                 self.sp = learner_query.LearnerPicks(self.sp, args, learner, split_obs)
         self.internalization_buffer: list[tuple[int, int]] = []  # distinct failed (frontier, beyond) pairs
-        names = [*og.evaluation_classes(args.n_blocks), "other"]  # the classes proposals are counted in
+        names = [*self.classes, "other"]  # the classes proposals are counted in
         kinds = ("frontier", "beyond", "frontier_arrived", "beyond_reached")  # goals proposed; goals reached (count)
         self.partner_counts = [f"sp_{kind}_{k}" for kind in kinds for k in names]
         for w in workers:
@@ -1170,8 +1171,7 @@ class GoalSampler(Sampler):
     def count(self, kind: str, goal: int):
         """One of the partner's goals in its class: proposed ('frontier', 'beyond'), or the agent reached
         it ('frontier_arrived': at the stepping stone; 'beyond_reached': the beyond goal's segment succeeded)."""
-        name = self.sp.oracle.class_of(og.from_mask(goal, self.args.n_blocks))
-        self.stats[f"sp_{kind}_{name or 'other'}"] += 1
+        self.stats[f"sp_{kind}_{self.class_of.get(goal, 'other')}"] += 1
 
     def after_cycle(self):
         """Workers merge the pairs they stored this cycle, in worker order: every worker rehearses all
@@ -1328,7 +1328,7 @@ class Learner:
         self.buffer = ReplayBuffer(args.num_envs, seg_capacity, args.segment_len, obs_dim, goal_dim)
         self.encountered: set[int] = set()  # every config met at any step of a training segment
         self.segments = 0  # every worker's, so far
-        self.plan_seconds = 0.0  # planning + graph updates this epoch, for the speed report
+        self.plan_seconds, self.waiting = 0.0, None  # planning + graph updates this epoch (speed report); see train
 
     def learn_from(self, per_worker: list[list[Segment]]):
         """Store each worker's segments (per_worker[i]: worker i's, as many for each) in its replay, update
@@ -1428,7 +1428,7 @@ class Run:
         self.workers = [Worker(args, rank() * args.num_envs + i) for i in range(args.num_envs)]
         self.learner = Learner(args, device)
         self.sampler = GoalSampler(args, self.learner, self.workers)
-        self.classes = og.evaluation_classes(args.n_blocks)
+        self.classes = og.evaluation_classes(args.n_blocks)  # SPEC §9's: name -> configs (the sampler's too)
         self.epoch, self.cycle = 0, 0
         self.tally = plumbing.new_tally(0)  # this epoch's segment outcomes, losses and timings, for its row
         self.rows: list[dict] = []  # every epoch's progress.csv row (checkpointed: logs are rebuilt on resume)

@@ -103,9 +103,8 @@ class PersonPartner:
     adds one to the sampler's count k (progress.csv)."""
 
     def __init__(self, partner, args, clock, count):
-        if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # however it came (a resumed run's options included)
-            print("error: --partner person takes one process (one page), not torchrun's", file=sys.stderr)
-            sys.exit(2)
+        if plumbing.processes() > 1:  # however it came (a resumed run's options included)
+            plumbing.fail("--partner person takes one process (one page), not torchrun's")
         self.partner, self.args, self.clock, self.count = partner, args, clock, count
         self.n_blocks = args.n_blocks
         self.token = secrets.token_urlsafe(18)
@@ -688,8 +687,8 @@ def check_args(a) -> str | None:
         return f"--person-port must be in [0, 65535], got {a.person_port}"
     if not a.person_host or ":" in a.person_host:
         return f"--person-host must be an IPv4 address or a host name, got {a.person_host!r}"
-    if a.partner == "person" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        return f"--partner person takes one process (one page), not {os.environ['WORLD_SIZE']} under torchrun"
+    if a.partner == "person" and plumbing.processes() > 1:
+        return f"--partner person takes one process (one page), not {plumbing.processes()} under torchrun"
     if a.partner == "person" and a.sp_ratio == 0 and a.ask_after == 0 and not a.eval_only:
         return "--partner person needs social cycles to ask in: give --sp-ratio above 0 or --ask-after above 0"
     return None

@@ -9,9 +9,9 @@ own: its Args class (the command line and checkpoints read its fields and docstr
 `evaluate`, and its sampler's `check_sampler_args`; a sampler is reached only through the hooks of
 `Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
 (each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
-agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments and
-plan_seconds. Arrows run one way: scripts -> plumbing -> speed (whether bf16 pays here), fetch5_env,
-oracle_graph. The update's speed tricks are speed.py's.
+agent (SAC's networks, optimizers, the rates they were given (lrs), normalizer, n_updates), buffer, graph,
+encountered, segments, plan_seconds and waiting. Arrows run one way: scripts -> plumbing -> speed (whether
+bf16 pays here), fetch5_env, oracle_graph. The update's speed tricks are speed.py's.
 
 Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
@@ -93,39 +93,53 @@ def make_parser(Args: type, with_defaults: bool = True) -> argparse.ArgumentPars
     return parser
 
 
-RATES, FEW_WORKERS, FEW_SCALE = ("lr_actor", "lr_critic"), 24, 0.3  # SPEC §12: below 24 workers, x0.3 (measured)
-
-
 def parse_args(Args: type, check_sampler_args, argv=None):
-    """The script's Args from the command line, or exit 2 with one line naming the first bad value. Rates not given
-    are x0.3 of the paper's below 24 workers (--num-envs x processes), unless --paper-rates or --init-from (§10)."""
-    parser, world_size = make_parser(Args), int(os.environ.get("WORLD_SIZE", "1"))  # torchrun's processes
+    """The script's Args from the command line, or exit 2 with one line naming the first bad value."""
+    parser = make_parser(Args)
     a, given = Args(**vars(parser.parse_args(argv))), given_flags(Args, argv)  # --help: the parser with defaults
-    if a.num_envs * world_size < FEW_WORKERS and not (a.paper_rates or a.init_from):
-        a = dataclasses.replace(a, **{k: getattr(a, k) * FEW_SCALE for k in RATES if k not in given})
-    if problem := check_args(a, check_sampler_args) or check_init_flags(a, given) or check_needs(a, given):
+    if problem := check_args(a, check_sampler_args) or check_needs(a, given):
         parser.error(problem)  # exit code 2, the message names the value
     return a
 
 
-def check_init_flags(a, given: set[str]) -> str | None:
-    """The flags that shape a run started from a trained agent (--init-prior-count, --init-lr-scale, --init-warmup,
-    --init-learning-starts) do nothing without --init-from: given without it (a resume keeps its own), refused."""
-    stray = sorted(f for f in given if f.startswith("init_") and f != "init_from")
-    if stray and not (a.init_from or a.resume):
-        flag = f"--{stray[0].replace('_', '-')} {getattr(a, stray[0])}"
-        return f"{flag} does nothing without --init-from (a run started from a trained agent)"
-    return None
+# Flags that do nothing unless another is set, refused alone: flag -> (the flag it needs, why); and Args.NEEDS'.
+NEEDS = {k: ("init_from", "a run started from a trained agent") for k in
+         ("init_prior_count", "init_lr_scale", "init_warmup", "init_learning_starts")}  # fmt: skip
 
 
 def check_needs(a, given: set[str]) -> str | None:
-    """A script's flags that do nothing unless another is set (its Args.NEEDS: flag -> (the flag it needs,
-    why)): given without it (a resume or an evaluation keeps the run's own), refused."""
-    for name, (needed, why) in getattr(type(a), "NEEDS", {}).items():
-        if name in given and not getattr(a, needed) and not (a.resume or a.eval_only):
-            flag, other = (f"--{x.replace('_', '-')}" for x in (name, needed))
-            return f"{flag} {getattr(a, name)} does nothing without {other} ({why})"
+    """A flag of NEEDS (or Args.NEEDS) given without the one it needs: refused (not with --resume: the run's own)."""
+    for name, (needed, why) in (NEEDS | getattr(type(a), "NEEDS", {})).items():
+        if name in given and not getattr(a, needed) and not a.resume:
+            value, flag, other = getattr(a, name), *(f"--{x.replace('_', '-')}" for x in (name, needed))
+            return f"{flag} {value if value != '' else repr(value)} does nothing without {other} ({why})"
     return None
+
+
+# --- Adam's rates (SPEC §12): the one place the rule is applied ----------------------------------
+PAPER_RATE, FEW_WORKERS, FEW_SCALE = 1e-3, 24, 0.3  # below 24 workers, x0.3 of the paper's (measured)
+FEW_TEXT, MANY_TEXT = f"x{FEW_SCALE:g} of the paper's: below {FEW_WORKERS} workers", f"{FEW_WORKERS} workers or more"
+
+
+def adam_rates(args, trained: bool = True) -> list[tuple[float, str]]:
+    """Adam's rates, the actor's and the critic's, each with why, however the Args were built (command line, code,
+    checkpoint): one given (not 0) as given, else the paper's 1e-3, x0.3 below 24 workers (--num-envs x processes)
+    unless --paper-rates; after --init-from (SPEC §10), the paper's x --init-lr-scale (trained=False: not scaled)."""
+    many, given = args.num_envs * processes() >= FEW_WORKERS, (args.lr_actor, args.lr_critic)
+    papers = "--paper-rates" if args.paper_rates else "--init-from" if args.init_from else MANY_TEXT if many else ""
+    rule = (PAPER_RATE, f"the paper's: {papers}") if papers else (PAPER_RATE * FEW_SCALE, FEW_TEXT)
+    if not (args.init_from and trained):
+        return [(r, "given") if r else rule for r in given]
+    scale, warmup = args.init_lr_scale, f", after a {args.init_warmup:,}-update warm-up" if args.init_warmup else ""
+    of = {r: f"{r:g} given" if r else "the paper's" for r in given}
+    return [((r or PAPER_RATE) * scale, f"x{scale:g} of {of[r]}: --init-lr-scale{warmup}") for r in given]
+
+
+def rates_text(lrs: list[float], whys: list[str]) -> str:
+    """The first line's rates: what Adam was given (SAC.lrs: the actor's, the critic's), each with why."""
+    if whys[0] == whys[1]:
+        return f"{lrs[0]:g} / {lrs[1]:g} ({whys[0]})"
+    return " / ".join(f"{lr:g} ({why})" for lr, why in zip(lrs, whys, strict=True))
 
 
 def given_flags(Args: type, argv=None) -> set[str]:
@@ -134,8 +148,7 @@ def given_flags(Args: type, argv=None) -> set[str]:
 
 
 def check_args(a, check_sampler_args) -> str | None:
-    """The first bad value in a (a script's Args), described, or None; the goal sampler's own options are
-    checked by check_sampler_args(a), the script's."""
+    """The first bad value in a (a script's Args), described, or None; its sampler's options: check_sampler_args."""
     for f in dataclasses.fields(a):
         value = getattr(a, f.name)
         if f.type in ("float", float) and not math.isfinite(value):
@@ -146,7 +159,8 @@ def check_args(a, check_sampler_args) -> str | None:
     for name in at_least_1:
         if getattr(a, name) < 1:
             return f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}"
-    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts", "alpha"):
+    for name in ("n_updates", "her_k", "threads", "video_episodes", "init_warmup", "init_learning_starts", "alpha",
+                 "lr_actor", "lr_critic"):  # fmt: skip  # a rate of 0: the rule's (adam_rates)
         if getattr(a, name) < 0:
             return f"--{name.replace('_', '-')} must be non-negative, got {getattr(a, name)}"
     for name in ("shortest_ratio", "gamma", "polyak", "sr_ema", "sr_prior"):
@@ -154,15 +168,16 @@ def check_args(a, check_sampler_args) -> str | None:
             return f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(a, name)}"
     if not 0 <= a.seed < 2**32:
         return f"--seed must be in [0, 2**32), got {a.seed}"
-    for name in ("lr_actor", "lr_critic", "init_lr_scale"):
-        if getattr(a, name) <= 0:
-            return f"--{name.replace('_', '-')} must be positive, got {getattr(a, name)}"
+    if a.init_lr_scale <= 0:
+        return f"--init-lr-scale must be positive, got {a.init_lr_scale}"
+    if a.paper_rates and a.init_from:  # SPEC §12: its rates are --init-lr-scale's share of the paper's
+        return "--paper-rates does nothing with --init-from (its rates: --init-lr-scale x the paper's; 1 gives them)"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
         return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
-    if a.her_strategy not in ("final", "future"):
-        return f"--her-strategy must be 'final' or 'future', got {a.her_strategy!r}"
-    if a.plan_on not in ("agent", "oracle"):
-        return f"--plan-on must be 'agent' or 'oracle', got {a.plan_on!r}"
+    for name, (one, other) in dict(her_strategy=("final", "future"), plan_on=("agent", "oracle"),
+                                   precision=("fp32", "bf16")).items():  # fmt: skip
+        if getattr(a, name) not in (one, other):
+            return f"--{name.replace('_', '-')} must be {one!r} or {other!r}, got {getattr(a, name)!r}"
     if a.max_path_len < 2:
         return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
     if a.stable_steps > a.segment_len:
@@ -181,8 +196,6 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
         return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
-    if a.precision not in ("fp32", "bf16"):
-        return f"--precision must be 'fp32' or 'bf16', got {a.precision!r}"
     if a.plain and (a.compile or a.precision != "fp32"):
         trick = "--compile" if a.compile else f"--precision {a.precision}"
         return f"--plain turns every speed trick off: not with {trick}"
@@ -214,8 +227,7 @@ MAX_BATCH = 8192  # 32x the paper's batch; a 5-block batch of 100,000 took 4.4 G
 
 
 def check_run_control(a) -> str | None:
-    """--resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir: what they
-    need."""
+    """What --resume, --init-from, --eval-only, --checkpoint, --capture-video, --plan-on and --runs-dir need."""
     if a.resume and a.eval_only:
         return "--resume and --eval-only exclude each other (evaluate with --eval-only --checkpoint PATH)"
     if a.init_from and (a.resume or a.eval_only):
@@ -253,7 +265,7 @@ def init_workers(args) -> torch.device:
     cuda = args.cuda and torch.cuda.is_available()
     if cuda and args.precision == "bf16":  # cuBLAS would otherwise sum bf16 products in bf16, not fp32 as on CPU
         torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False  # (test_update's bounds)
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+    if processes() > 1 and not dist.is_initialized():
         if cuda:
             torch.cuda.set_device(local_gpu())
         dist.init_process_group("nccl" if cuda else "gloo", timeout=COLLECTIVE_TIMEOUT)
@@ -271,6 +283,11 @@ def rank() -> int:
 
 def world() -> int:
     return dist.get_world_size() if dist.is_initialized() else 1
+
+
+def processes() -> int:
+    """torchrun's processes (its WORLD_SIZE; 1 without torchrun), known before the job is joined (world())."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
 
 
 def _comm_device() -> torch.device:
@@ -386,10 +403,8 @@ def version_warning(state: dict) -> str | None:
     goes on, but cannot repeat the uninterrupted one exactly); None if the same, or not recorded (older
     checkpoints)."""
     saved, now = state.get("versions"), library_versions()
-    if not isinstance(saved, dict):
-        return None
-    changed = [f"{name} {saved[name]} -> {now[name]}" for name in now if name in saved and saved[name] != now[name]]
-    if not changed:
+    saved = saved if isinstance(saved, dict) else now
+    if not (changed := [f"{k} {saved[k]} -> {now[k]}" for k in now if saved.get(k, now[k]) != now[k]]):
         return None
     return (f"warning: --resume: the checkpoint was written under other library versions ({', '.join(changed)}): "
             "the run goes on, but will not repeat the uninterrupted one exactly")  # fmt: skip
@@ -529,7 +544,12 @@ def restore(run, state: dict, path: str, flag: str):
 
 def checkpoint_error(flag: str, path: str, reason: str):
     reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
-    print(f"error: {flag}: cannot load checkpoint {path!r}: {reason}", file=sys.stderr)
+    fail(f"{flag}: cannot load checkpoint {path!r}: {reason}")
+
+
+def fail(message: str):
+    """Bad input: one line that names it, exit code 2 (before anything is written)."""
+    print(f"error: {message}", file=sys.stderr)
     sys.exit(2)
 
 
@@ -554,15 +574,13 @@ def args_from_checkpoint(args, given: set[str], state: dict, flag: str):
            for k in sorted(given - set(allowed))
            if meaning(k, getattr(args, k)) != meaning(k, getattr(saved, k))]  # fmt: skip
     if bad:
-        print(f"error: {flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}", file=sys.stderr)
-        sys.exit(2)
+        fail(f"{flag}: flags that differ from the checkpoint's run: {'; '.join(bad)}")
     # Evaluation settings come from this command line (defaults included); a resumed run keeps its own
     # unless given again (threads, say: a different thread count changes float sums).
     keep = [k for k in allowed if args.eval_only or k in given or k == "resume"]
     merged = dataclasses.replace(saved, **{k: getattr(args, k) for k in keep})
     if why := check_device(merged):
-        print(f"error: {flag}: {why} (the checkpoint's setting; give the flag anew)", file=sys.stderr)
-        sys.exit(2)
+        fail(f"{flag}: {why} (the checkpoint's setting; give the flag anew)")
     return merged
 
 
@@ -655,8 +673,7 @@ def args_with_blocks_of(args, given: set[str], state: dict, path: str, flag: str
     line's arguments, with the file's block count; exit 2 if --n-blocks says otherwise."""
     n = blocks_of(state)
     if "n_blocks" in given and args.n_blocks != n:
-        print(f"error: {flag}: --n-blocks {args.n_blocks}, but {path!r} holds a {n}-block agent", file=sys.stderr)
-        sys.exit(2)
+        fail(f"{flag}: --n-blocks {args.n_blocks}, but {path!r} holds a {n}-block agent")
     return dataclasses.replace(args, n_blocks=n)
 
 
@@ -665,8 +682,7 @@ def args_with_blocks_of(args, given: set[str], state: dict, path: str, flag: str
 PAPER_COMMIT = "f95e3900401cd690c068deeadad9607cef095afa"  # of https://github.com/akakzia/gangstr
 PAPER_URL = f"https://raw.githubusercontent.com/akakzia/gangstr/{PAPER_COMMIT}/hipstr/gangstr.pt"
 PAPER_SHA256 = "0e37c60367ca83994028529553599eced86f1ab8731b06fcc691a7b42c9ed0e8"
-PAPER_TIMEOUT = 30  # seconds a silent server is waited for
-PAPER_WAIT = 300  # seconds a torchrun process waits for its node's LOCAL_RANK 0 to download the file
+PAPER_TIMEOUT, PAPER_WAIT = 30, 300  # seconds: a silent server waited for; a torchrun process, for its node's download
 
 
 def paper_file(flag: str) -> str:
@@ -676,7 +692,7 @@ def paper_file(flag: str) -> str:
     command line is read before the processes meet: one process a node downloads (LOCAL_RANK 0); the others
     wait up to PAPER_WAIT seconds for its file, and check it themselves (if it fails, torchrun ends them)."""
     path = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hme-gangstr" / "gangstr.pt"
-    downloads = int(os.environ.get("LOCAL_RANK", "0")) == 0
+    downloads = local_gpu() == 0  # torchrun's LOCAL_RANK
     made = next((p for p in reversed(path.parents) if not p.exists()), None) if downloads else None  # to remove
     timeout = socket.getdefaulttimeout()
     # A scheduler's stop (SIGTERM, before any Stopper) as a Ctrl-C, for the process that writes to the cache; one
@@ -702,9 +718,7 @@ def paper_file(flag: str) -> str:
             shutil.rmtree(made, ignore_errors=True)
         if not isinstance(e, Exception):
             raise  # a Ctrl-C or SIGTERM: run_main says so and exits 130
-        print(f"error: {flag} paper: {type(e).__name__}: {' '.join(str(e).split())}; download {PAPER_URL} and put "
-              f"it at {path}", file=sys.stderr)  # fmt: skip
-        sys.exit(2)
+        fail(f"{flag} paper: {type(e).__name__}: {' '.join(str(e).split())}; download {PAPER_URL} and put it at {path}")
     finally:
         socket.setdefaulttimeout(timeout)
         if catches:
@@ -796,7 +810,7 @@ def cycle_progress(run, detail: str):
     per_cycle, per_eval = seconds / max(1, run.cycle), run.rows[-1]["time_eval"] if run.rows else 0.0
     epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval
     run_left = epoch_left + (a.n_epochs - run.epoch - 1) * (per_cycle * a.n_cycles + per_eval)
-    learning = learning_text(a, tally["losses"]["critic_loss"], getattr(run.learner, "waiting", None))
+    learning = learning_text(a, tally["losses"]["critic_loss"], run.learner.waiting)
     progress(f"  epoch {run.epoch} cycle {run.cycle}/{a.n_cycles} | {detail} | {learning} | train {rate:.0f} steps/s | "
              f"left: epoch {duration(epoch_left)}, run {duration(run_left)}")  # fmt: skip
 
@@ -871,12 +885,9 @@ def write_csv(path: Path, rows: list[dict]):
 
 def progress(text: str, final: bool = False):
     """A live status line on a terminal; every line in a log file. Worker 0 speaks for all."""
-    if rank() > 0:
-        return
-    if sys.stdout.isatty():
-        print("\r" + text.ljust(100), end="\n" if final else "", flush=True)
-    else:
-        print(text, flush=True)
+    if rank() == 0:
+        live = sys.stdout.isatty()  # the line rewritten in place until a final one
+        print("\r" + text.ljust(100) if live else text, end="" if live and not final else "\n", flush=True)
 
 
 # --- --eval-only: results and videos --------------------------------------------------------------
@@ -919,11 +930,9 @@ def claim_name(folder: Path, stem: str) -> Path:
     empty (so two evaluations in one folder never overwrite each other)."""
     for n in itertools.count(1):
         path = folder / (f"{stem}.json" if n == 1 else f"{stem}_{n}.json")
-        try:
+        with contextlib.suppress(FileExistsError):
             path.open("x").close()
             return path
-        except FileExistsError:
-            continue
 
 
 def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
@@ -932,8 +941,7 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
     --capture-video, an mp4 per class of its first evaluation episodes, in videos/ beside the JSON.
     `planner`: the graph that plans sub-goals instead of the agent's."""
     args = run.args
-    for key in ("buffer", "rng", "env_rng"):  # evaluation needs no replay, and draws from its own seeds
-        state.pop(key, None)
+    state = {k: v for k, v in state.items() if k not in ("buffer", "rng", "env_rng")}  # no replay; its own seeds
     paper = state.get("format") == "paper"
     if paper:  # networks and normalizer are all it holds
         load_weights(run.learner.agent, state, args, args.checkpoint, "--checkpoint")
@@ -965,8 +973,7 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
         out.unlink(missing_ok=True)
         tmp.unlink(missing_ok=True)
         raise
-    for name in run.classes:
-        print(f"{name:>6}  SR {sr[name]:.3f}")
+    print("\n".join(f"{name:>6}  SR {sr[name]:.3f}" for name in run.classes))
     who = "the paper's agent" if paper else f"epoch {run.epoch}"
     print(f"global  SR {sr['global']:.3f}  ({args.eval_goals_per_class} goals per class, {who}, "
           f"sub-goals planned on the {args.plan_on}'s graph)")  # fmt: skip
@@ -1048,8 +1055,7 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
         else:
             args = args_from_checkpoint(args, given_flags(Args, argv), state, flag)
             if (why := check_sampler_args(args)) is not None:  # the checkpoint's options, in this job
-                print(f"error: {flag}: {why}", file=sys.stderr)
-                sys.exit(2)
+                fail(f"{flag}: {why}")
         if args.resume and state["counters"]["epoch"] >= args.n_epochs:
             print(f"nothing to do: {args.resume} has finished epoch {state['counters']['epoch'] - 1} "
                   f"(--n-epochs {args.n_epochs}); give a larger --n-epochs to train on")  # fmt: skip
@@ -1061,9 +1067,8 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
         if "freeze_normalizer" not in given:  # fine-tuning keeps the file's statistics (--no-freeze-normalizer: not)
             args = dataclasses.replace(args, freeze_normalizer=True)
     if args.capture_video and (why := rendering_problem()):  # every worker: all leave together
-        print(f"error: --capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
-              "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)", file=sys.stderr)  # fmt: skip
-        sys.exit(2)
+        fail(f"--capture-video: MuJoCo cannot render here ({why}); install Debian's libosmesa6 and set "
+             "MUJOCO_GL=osmesa (MUJOCO_GL=egl on a GPU machine)")  # fmt: skip
     if args.eval_only:  # evaluation stores no segment
         args = dataclasses.replace(args, buffer_size=args.segment_len)
     return args, state, init
@@ -1076,14 +1081,14 @@ class RunFolder:
     and SIGTERM talk to. A context: the logs are closed at its end."""
 
     def __init__(self, run, state: dict | None, init: dict | None = None):
-        args = run.args
+        args, agent = run.args, run.learner.agent
         if state is not None:
             restore(run, state, args.resume, "--resume")
             progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
             if (warning := version_warning(state)) and rank() == 0:
                 print(warning, file=sys.stderr, flush=True)
         if init is not None:  # before the folder: a file that does not fit exits 2 with nothing written
-            load_weights(run.learner.agent, init, args, args.init_from, "--init-from")
+            load_weights(agent, init, args, args.init_from, "--init-from")
         if state is not None:
             self.dir = Path(args.resume).resolve().parent
         else:
@@ -1092,9 +1097,8 @@ class RunFolder:
                 try:
                     self.dir.mkdir(parents=True, exist_ok=True)
                 except OSError as e:
-                    print(f"error: --runs-dir {args.runs_dir!r}: cannot create {str(self.dir)!r}: {e}", file=sys.stderr)
-                    sys.exit(2)
-                config = dict(dataclasses.asdict(args), workers=world() * args.num_envs)
+                    fail(f"--runs-dir {args.runs_dir!r}: cannot create {str(self.dir)!r}: {e}")
+                config = dict(dataclasses.asdict(args), workers=world() * args.num_envs, adam_rates=agent.lrs)
                 if args.init_from:  # which file (the paper's agent is not in the repository: its hash names it)
                     with open(args.init_from, "rb") as f:
                         config["init_from_sha256"] = hashlib.file_digest(f, "sha256").hexdigest()
@@ -1102,15 +1106,11 @@ class RunFolder:
         if init is not None:
             progress(f"initialized from {args.init_from} (its networks and normalizer; the rest is new)", final=True)
         self.logger = Logger(self.dir, run.rows, resumed=state is not None) if rank() == 0 else None
-        self.checkpoint = self.dir / "checkpoint.pt"
-        self.stopper = Stopper(self.dir / "checkpoint.pt.tmp")
-        self.saved_at, self.before_evaluation = None, None  # (epoch, cycle) the checkpoint holds; see evaluate
-        self.before_cycle = None  # see cycle
-        device = run.learner.agent.device
-        rates, paper = (args.lr_actor, args.lr_critic), (type(args).lr_actor, type(args).lr_critic)  # SPEC §12
-        whose = {paper: "paper", tuple(r * FEW_SCALE for r in paper): f"x{FEW_SCALE:g}: below {FEW_WORKERS} workers"}
-        progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {device} | rates "
-                 f"{rates[0]:g} / {rates[1]:g} ({whose.get(rates, 'given')})", final=True)  # fmt: skip
+        self.checkpoint, self.stopper = self.dir / "checkpoint.pt", Stopper(self.dir / "checkpoint.pt.tmp")
+        self.saved_at, self.before_evaluation, self.before_cycle = None, None, None  # see end_epoch, evaluate, cycle
+        whys = [why for _, why in adam_rates(args)] if state is None else ["the run's own"] * 2  # as it began
+        progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {agent.device} | "
+                 f"rates {rates_text(agent.lrs, whys)}", final=True)  # fmt: skip
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 
@@ -1165,7 +1165,7 @@ class RunFolder:
             self.logger.log(row)
         self.saved_at = (run.epoch, run.cycle)
         per_class = " ".join(f"{k} {sr[k]:.2f}" for k in run.classes)
-        waiting = getattr(run.learner, "waiting", None)  # --init-learning-starts: the replays still filling
+        waiting = run.learner.waiting  # --init-learning-starts: the replays still filling
         learned = f"{learning_text(run.args, math.nan, waiting)} | " if run.args.n_updates == 0 or waiting else ""
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
                  f"{learned}"
@@ -1191,7 +1191,7 @@ class RunFolder:
 def leave(code: int):
     """Exit with code. A distributed worker leaves through os._exit, its outputs flushed and closed:
     at interpreter exit, gloo's worker thread could abort the process (SIGABRT) after all the work."""
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if processes() > 1:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -238,3 +238,16 @@ def test_vds_heads_regress_the_critics_td_targets():
         assert float(sampler.train_vds(batch, target)["vds_loss"]) == pytest.approx(by_hand, rel=1e-5)
         losses.append(by_hand)
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])
+
+
+@pytest.mark.parametrize("argv, heads, critic", [([], 3e-4, 3e-4), (["--lr-critic", "5e-4"], 5e-4, 5e-4),
+                                                 (["--init-from", "{file}"], 1e-3, 1e-4)])  # fmt: skip
+def test_vds_heads_learn_at_the_critics_rate_but_not_at_init_froms_share_of_it(monkeypatch, tmp_path, argv, heads,
+                                                                               critic):  # fmt: skip
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    (tmp_path / "agent.pt").write_bytes(b"")  # only its path is read here
+    argv = [a.format(file=tmp_path / "agent.pt") for a in argv]
+    args = plumbing.parse_args(vds.Args, vds.check_sampler_args, ["--n-blocks", "3", "--buffer-size", "400", *argv])
+    run = vds.Run(args, "cpu")  # the heads start untrained beside a trained critic (SPEC §8)
+    assert run.sampler.vds_opt.param_groups[0]["lr"] == pytest.approx(heads, rel=1e-12)
+    assert run.learner.agent.critic_opt.param_groups[0]["lr"] == pytest.approx(critic, rel=1e-12)

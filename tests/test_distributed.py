@@ -6,6 +6,7 @@ process makes one SAC update on its workers' fixed batches, trains a few cycles 
 then (under torchrun) runs a tiny gangstr_hme.main."""
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -102,9 +103,12 @@ def test_two_workers_in_one_process_run_what_two_processes_run(workers, lockstep
     # ... the same goals in every cycle, the learner's picks among the partner's candidates included ...
     assert torch.equal(lockstep["goals"], torch.cat([r0["goals"], r1["goals"]]))
     assert lockstep["proposed"] == r0["proposed"] + r1["proposed"] > 0
-    # ... the same normalizer statistics (to float tolerance: one forward pass acts for both workers, which
-    # rounds differently from two) ...
-    torch.testing.assert_close(lockstep["normalizer"], r0["normalizer"], rtol=1e-5, atol=1e-4)
+    # ... the same normalizer statistics: as many observations, their sums to float tolerance (one forward pass acts
+    # for both workers, which rounds differently from two; the physics grows it, as the trajectories go on: 1e-5
+    # relatively after the first cycle, 1e-4 after the third, on an Intel Xeon; a worker's observations missing or
+    # counted twice would move them by far more) ...
+    assert lockstep["normalizer"][-1] == r0["normalizer"][-1]
+    torch.testing.assert_close(lockstep["normalizer"], r0["normalizer"], rtol=1e-3, atol=1e-6)
     # ... and, from the same fixed batches, the same parameters after one update.
     pairs = zip(lockstep["batches"], r0["batches"] + r1["batches"], strict=True)
     assert all(torch.equal(a["obs"], b["obs"]) for a, b in pairs)
@@ -166,11 +170,12 @@ def test_only_worker_0_writes_the_run_folder_and_its_checkpoint_once(workers):
 
 def test_a_torchrun_run_of_two_workers_learns_at_three_tenths_of_the_papers_rates_and_says_so(workers):
     out, _, stdout = workers  # its command line gives no rate (SPEC §12: below 24 workers, x0.3)
-    assert "| 2 worker(s) on cpu | rates 0.0003 / 0.0003 (x0.3: below 24 workers)" in stdout
+    assert "| 2 worker(s) on cpu | rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)" in stdout
     (run,) = (out / "runs").iterdir()
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     rates = [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")]
-    assert rates == pytest.approx([3e-4, 3e-4], rel=1e-12) and state["args"]["lr_actor"] == rates[0]
+    assert rates == pytest.approx([3e-4, 3e-4], rel=1e-12) and state["args"]["lr_actor"] == 0  # not given: the rule's
+    assert json.loads((run / "config.json").read_text())["adam_rates"] == rates
 
 
 def test_a_single_process_needs_no_launcher():

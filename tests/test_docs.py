@@ -2,12 +2,14 @@
 section a file names exists, and no text points outside the repository or speaks of how the project was made
 (a tracker's numbers, the work behind it) rather than of its commits, versions and sections."""
 
+import csv
 import dataclasses
 import re
 import shlex
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_baselines import TINY
 
@@ -277,3 +279,72 @@ def test_every_mutation_in_the_list_breaks_text_that_occurs_once_in_its_file():
     stale = [(m.name, old[:60]) for m in mutations.MUTATIONS for old, _ in m.edits()
              if (ROOT / m.file).read_text().count(old) != 1]  # fmt: skip
     assert not stale, f"mutations whose text does not occur exactly once: {stale}"
+
+
+# ------------------------------------------------------------------------------------------------
+# What the pages say of Adam's rates (SPEC §12) and of the committed runs is what the code and CSVs say
+# ------------------------------------------------------------------------------------------------
+def rate_whys() -> set[str]:
+    """Every why the run's first line can give a rate (plumbing.adam_rates, and a resumed run's own)."""
+    base = dict(num_envs=1, paper_rates=False, init_from="", init_lr_scale=0.1, init_warmup=2000)
+    cases = [{}, dict(num_envs=24), dict(paper_rates=True), dict(lr_actor=5e-4), dict(init_from="agent.pt"),
+             dict(init_from="agent.pt", lr_critic=2e-3, init_warmup=0)]  # fmt: skip
+    whys = {"the run's own"}
+    for case in cases:
+        args = gh.Args(**{**base, **case})
+        whys |= {why for _, why in plumbing.adam_rates(args)}
+    return whys
+
+
+def rates_pages() -> dict[str, str]:
+    """The pages that state the rate rule or quote the first line, their whitespace joined (spans wrap lines)."""
+    pages = ["README.md", "docs/SPEC.md", "docs/training.md", "docs/scaling.md", "docs/results.md", "docs/speed.md"]
+    return {page: " ".join((ROOT / page).read_text().split()) for page in pages}
+
+
+def test_every_rates_label_a_page_quotes_is_one_the_first_line_can_print(monkeypatch):
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    whys, bad = rate_whys(), []
+    for page, text in rates_pages().items():
+        for span in re.findall(r"`([^`]*)`", text):  # code spans and blocks
+            quoted = re.findall(r"rates [\d.e-]+ (?:\(([^()]*)\) )?/ [\d.e-]+ \(([^()]*)\)", span)
+            labels = [why for pair in quoted for why in pair if why]
+            if re.fullmatch(r"\([^()]*(?:paper|given|workers|own)[^()]*\)", span):
+                labels.append(span[1:-1])  # a why on its own, as the pages list them
+            bad += [f"{page}: {label!r}" for label in labels if label not in whys]
+    assert not bad, f"labels no run prints (the first line's: {sorted(whys)}): {bad}"
+
+
+def test_the_rate_rule_as_spec_and_training_md_state_it_is_the_codes():
+    spec, training = rates_pages()["docs/SPEC.md"], rates_pages()["docs/training.md"]
+    rule = spec[spec.index("**One machine's rates") : spec.index("Limits checked on the command line")]
+    update = training[training.index("### The update, whatever the number of workers") :]
+    update = update[: update.index(" ## ")]  # to the next section
+    paper, few = plumbing.PAPER_RATE, plumbing.PAPER_RATE * plumbing.FEW_SCALE
+    for name, text in (("SPEC §12", rule), ("training.md", update)):
+        for said in (f"x{plumbing.FEW_SCALE:g} of the paper's", f"{plumbing.FEW_WORKERS} workers or more",
+                     f"{paper:.0e}".replace("e-0", "e-"), f"{few:.0e}".replace("e-0", "e-"), "`--paper-rates`",
+                     "`--init-from`", "refuse", "`--resume`", "each on its own"):  # fmt: skip
+            assert said in text, f"{name} does not say {said!r}"
+    assert gh.Args.lr_actor == gh.Args.lr_critic == 0  # "a rate not given (0, the default)"
+
+
+def last_rows(path: str, column: str) -> np.ndarray:
+    with (ROOT / path).open() as f:
+        return np.array([float(r[column]) for r in csv.DictReader(f)])
+
+
+def test_the_numbers_the_readme_quotes_from_the_committed_runs_are_the_csvs():
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    main = "results/main_job/progress.csv"
+    last10 = ", ".join(f"{c} {last_rows(main, f'sr_{c}')[-10:].mean():.2f}" for c in ("C1", "C2", "C3"))
+    assert f"SR, last 10 epochs: {last10}" in readme
+    stacks = max(last_rows(main, f"sr_{c}").max() for c in ("S2", "P3"))
+    assert f"S2, P3 at most {stacks:.2f}" in readme
+    hours = sum(last_rows(main, f"time_{p}").sum() for p in ("collect", "update", "eval")) / 3600
+    assert 2.2 < hours < 2.4 and "2 h 20 min" in readme  # its own time; the wall time a little more (resumed)
+    runs = [f"results/update_3blocks/w1_x0.3_seed{s}/progress.csv" for s in (1, 2)]
+    s2 = sorted(int(np.argmax(last_rows(r, "sr_S2") >= 0.8)) for r in runs)
+    assert f"S2 at 0.8 by epoch {s2[0]} and {s2[1]} in the two committed seeds" in readme
+    halves = [int(np.argmax(last_rows(r, f"sr_{c}") >= 0.5)) for r in runs for c in ("C1", "C2", "C3")]
+    assert f"C1, C2, C3 reach 0.5 after {min(halves)}-{max(halves)} epochs" in readme

@@ -25,9 +25,11 @@ from chisquare import uniform_pvalue
 
 import fetch5_env
 import gangstr_hme as gh
+import lp_baseline as lp
 import oracle_graph as og
 import plumbing
 import speed
+import vds_baseline as vds
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "3", "--n-updates", "2", "--batch-size", "16",
@@ -974,10 +976,12 @@ def test_help_shows_every_default():
 
 # The update's settings by the number of workers (SPEC §12): one worker's update was measured against the paper's
 # summed one and against smaller rates (docs/results.md). Below the paper's 24 workers, the rates not given are
-# x0.3 of the paper's; 24 workers, however split into processes, train with the paper's settings.
+# x0.3 of the paper's; 24 workers, however split into processes, train with the paper's settings. The rule is
+# applied where Adam is built (plumbing.adam_rates), so the command line, an Args built in code and --resume
+# all go through it.
 PAPERS_TABLE = dict(n_cycles=50, n_segments=10, n_updates=30, segment_len=40, batch_size=256, buffer_size=10**6,
-                    her_strategy="final", her_k=4, gamma=0.99, alpha=0.2, polyak=0.95, lr_actor=1e-3, lr_critic=1e-3,
-                    sr_ema=0.01, sr_prior=0.5, k_shortest=5, shortest_ratio=0.5, internalization_prob=0.5)  # fmt: skip
+                    her_strategy="final", her_k=4, gamma=0.99, alpha=0.2, polyak=0.95, sr_ema=0.01, sr_prior=0.5,
+                    k_shortest=5, shortest_ratio=0.5, internalization_prob=0.5)  # fmt: skip
 
 
 def rates_of(monkeypatch, processes, *argv):
@@ -1005,24 +1009,94 @@ def test_given_rates_are_used_as_given_and_paper_rates_gives_one_worker_the_pape
     assert rates_of(monkeypatch, 1, "--lr-critic", "1e-3") == pytest.approx([3e-4, 1e-3], rel=1e-12)
     assert rates_of(monkeypatch, 1, "--num-envs", "24", "--lr-critic", "2e-3") == [1e-3, 2e-3]
     assert rates_of(monkeypatch, 1, "--paper-rates") == [1e-3, 1e-3]
+    assert rates_of(monkeypatch, 1, "--paper-rates", "--lr-actor", "5e-4") == [5e-4, 1e-3]
     (tmp_path / "agent.pt").write_bytes(b"")  # read later (SPEC §10 scales its rates its own way)
     assert rates_of(monkeypatch, 1, "--init-from", str(tmp_path / "agent.pt")) == pytest.approx([1e-4, 1e-4])
+    assert rates_of(monkeypatch, 24, "--init-from", str(tmp_path / "agent.pt"), "--lr-critic", "2e-3",
+                    "--init-lr-scale", "0.5") == pytest.approx([5e-4, 1e-3])  # fmt: skip
+
+
+@pytest.mark.parametrize("script", [gh, lp, vds])
+@pytest.mark.parametrize("num_envs, want", [(1, 3e-4), (24, 1e-3)])
+def test_an_args_built_in_code_gets_the_rates_the_command_line_gets(monkeypatch, script, num_envs, want):
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    sac = script.SAC(script.Args(n_blocks=3, num_envs=num_envs), fetch5_env.obs_size(3), "cpu")  # no parse_args
+    assert sac.lrs == pytest.approx([want, want], rel=1e-12)
+    assert script.Args.lr_actor == script.Args.lr_critic == 0  # not given: the rule's (adam_rates)
+
+
+def test_paper_rates_with_init_from_is_refused_in_one_line(tmp_path, capsys):
+    (tmp_path / "agent.pt").write_bytes(b"")
+    with pytest.raises(SystemExit) as e:
+        gh.main(["--paper-rates", "--init-from", str(tmp_path / "agent.pt"), "--runs-dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
+    assert "--paper-rates does nothing with --init-from" in err
+
+
+def first_line(monkeypatch, capsys, tmp_path, *argv, processes=1) -> str:
+    """The first line a new run prints (its run folder, workers and rates), from a run built from this command
+    line; no training."""
+    monkeypatch.setenv("WORLD_SIZE", str(processes))  # the rule counts torchrun's processes; none joins here
+    argv = [*TINY, "--n-blocks", "3", "--buffer-size", "400", *argv, "--runs-dir", str(tmp_path / "runs")]
+    run = gh.Run(plumbing.parse_args(gh.Args, gh.check_sampler_args, argv), "cpu")
+    capsys.readouterr()
+    with plumbing.RunFolder(run, None):
+        pass
+    return capsys.readouterr().out.splitlines()[0]
+
+
+@pytest.mark.parametrize(
+    "argv, processes, says",
+    [
+        ([], 1, "| 1 worker(s) on cpu | rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)"),
+        (["--num-envs", "11"], 2, "| rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)"),  # 22
+        (["--num-envs", "12"], 2, "| rates 0.001 / 0.001 (the paper's: 24 workers or more)"),  # 12 x 2 processes
+        (["--num-envs", "24"], 1, "| 24 worker(s) on cpu | rates 0.001 / 0.001 (the paper's: 24 workers or more)"),
+        (["--num-envs", "24", "--lr-actor", "3e-4", "--lr-critic", "3e-4"], 1, "| rates 0.0003 / 0.0003 (given)"),
+        (["--paper-rates"], 1, "| rates 0.001 / 0.001 (the paper's: --paper-rates)"),
+        (["--lr-actor", "5e-4"], 1, "| rates 0.0005 (given) / 0.0003 (x0.3 of the paper's: below 24 workers)"),
+        (["--lr-critic", "2e-3", "--paper-rates"], 1, "| rates 0.001 (the paper's: --paper-rates) / 0.002 (given)"),
+        (
+            ["--init-from", "{file}"],
+            1,
+            "| rates 0.0001 / 0.0001 (x0.1 of the paper's: --init-lr-scale, after a 2,000-update warm-up)",
+        ),
+        (
+            ["--init-from", "{file}", "--num-envs", "24", "--init-warmup", "0", "--lr-critic", "2e-3"],
+            1,
+            "| rates 0.0001 (x0.1 of the paper's: --init-lr-scale) / 0.0002 (x0.1 of 0.002 given: --init-lr-scale)",
+        ),
+    ],
+)
+def test_the_first_line_prints_the_rates_adam_was_given_and_why_by_the_rule(monkeypatch, capsys, tmp_path, argv,
+                                                                               processes, says):  # fmt: skip
+    (tmp_path / "agent.pt").write_bytes(b"")  # --init-from's file: only its hash is read here (config.json)
+    line = first_line(monkeypatch, capsys, tmp_path, *[a.format(file=tmp_path / "agent.pt") for a in argv],
+                      processes=processes)  # fmt: skip
+    assert line.endswith(says), line
 
 
 def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path):
     out = run_script(*RESUME, "--n-epochs", "1", runs_dir=tmp_path / "a")
-    assert out.returncode == 0 and out.stdout.splitlines()[0].endswith("rates 0.0003 / 0.0003 (x0.3: below 24 workers)")
+    assert out.returncode == 0 and out.stdout.splitlines()[0].endswith("rates 0.0003 / 0.0003 (x0.3 of the paper's: "
+                                                                       "below 24 workers)")  # fmt: skip
     (run,) = (tmp_path / "a").iterdir()
+    assert json.loads((run / "config.json").read_text())["adam_rates"] == pytest.approx([3e-4, 3e-4], rel=1e-12)
     state = torch.load(run / "checkpoint.pt", weights_only=True)  # as a run started before x0.3 saved it
     state["args"] = {k: v for k, v in state["args"].items() if k != "paper_rates"} | dict(lr_actor=1e-3, lr_critic=1e-3)
+    for opt in ("actor_opt", "critic_opt"):
+        state[opt]["param_groups"][0]["lr"] = 1e-3
     torch.save(state, run / "checkpoint.pt")
     out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "a")
-    assert out.returncode == 0 and "| rates 0.001 / 0.001 (paper)" in out.stdout.splitlines()[1]  # after "resumed"
+    assert out.returncode == 0 and "| rates 0.001 / 0.001 (the run's own)" in out.stdout.splitlines()[1]
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")] == [1e-3, 1e-3]
     out = run_script(*RESUME, "--n-epochs", "1", "--lr-actor", "5e-4", "--lr-critic", "6e-4", runs_dir=tmp_path / "b")
     assert out.returncode == 0 and out.stdout.splitlines()[0].endswith("| rates 0.0005 / 0.0006 (given)")
     (run,) = (tmp_path / "b").iterdir()
     out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
-    assert out.returncode == 0 and "| rates 0.0005 / 0.0006 (given)" in out.stdout.splitlines()[1]
+    assert out.returncode == 0 and "| rates 0.0005 / 0.0006 (the run's own)" in out.stdout.splitlines()[1]
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["counters"]["epoch"] == 2 and (state["args"]["lr_actor"], state["args"]["lr_critic"]) == (5e-4, 6e-4)
     assert [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")] == [5e-4, 6e-4]

@@ -354,6 +354,7 @@ def test_the_query_counts_sr_classes_as_progress_with_ask_progress_classes():
         (["--ask-progress", "edges"], "--ask-progress must be one of nodes, classes"),
         (["--ask-progress", "classes"], "--ask-progress classes does nothing without --ask-after"),
         (["--ask-progress", "nodes"], "--ask-progress nodes does nothing without --ask-after"),  # as the default
+        (["--ask-progress", ""], "--ask-progress '' does nothing without --ask-after (the learner never asks)"),
         (["--help-cycles", "5"], "--help-cycles 5 does nothing without --ask-after (the learner never asks)"),
         (["--help-cycles", "3"], "--help-cycles 3 does nothing without --ask-after"),  # the default's value, given
         (["--learner-picks", "zpd", "--sp-ratio", "0"], "--learner-picks needs social cycles"),

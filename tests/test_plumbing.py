@@ -54,7 +54,7 @@ def fake_run(cycle: int, seconds: float, steps: int, epoch: int, last_eval: floa
     args = types.SimpleNamespace(n_cycles=10, n_epochs=3, segment_len=10, n_updates=30, freeze_normalizer=False)
     tally = dict(collect=seconds / 4, update=3 * seconds / 4, env_steps_at_start=1000, losses=dict(critic_loss=0.25))
     rows = [] if last_eval is None else [dict(time_eval=last_eval)]
-    learner = types.SimpleNamespace(segments=(1000 + steps) // 10)
+    learner = types.SimpleNamespace(segments=(1000 + steps) // 10, waiting=None)
     return types.SimpleNamespace(args=args, tally=tally, cycle=cycle, epoch=epoch, rows=rows, learner=learner)
 
 
