@@ -146,8 +146,8 @@ class Args:
     max_eval_subgoals: int = 9
     """sub-goal segments an evaluation episode may use"""
     eval_only: bool = False
-    """evaluate the --checkpoint and exit, no training: SR per class, printed and saved beside the checkpoint (for
-    the paper's file, which is read-only in its cache, in --runs-dir)"""
+    """evaluate the --checkpoint and exit, no training: SR per class, printed and saved beside the checkpoint (the
+    paper's file lives in a download cache, not a run folder: its results go to --runs-dir)"""
     checkpoint: str = ""
     """checkpoint to evaluate with --eval-only (paper: the authors' agent, fetched once into a cache)"""
     plan_on: str = "agent"
@@ -949,7 +949,7 @@ class Sampler:
         goals so far, one per reset (checkpointed; progress.csv's goals sums them over processes).
       check_sampler_args(args), a function beside the class: the first bad value of its options, or None.
       Args.RESUMABLE (optional, as NEEDS and SAME; in the sampler's group of Args, kept or remade by a fork that
-        replaces the group): the sampler's options --resume may change (it refuses any other), as a page's address.
+        replaces the group): the sampler's options --resume may change (it refuses any other), as where a page is.
       Args.NEEDS: flag -> (the flag it needs, why): a flag that would do nothing, given alone, is refused.
       Args.SAME: flag -> {value: the value it means}: values --resume takes for each other ('' for 'nodes').
     Every random draw of a cycle comes from its worker's own stream, w.rng (never np.random, random, torch's

@@ -120,9 +120,7 @@ class PersonPartner:
         try:  # bound now, before the run folder exists: a port in use exits 2 with nothing written
             self.server = http.server.ThreadingHTTPServer((args.person_host, args.person_port), self.handler())
         except OSError as e:
-            print(f"error: --partner person: cannot serve the page on {args.person_host}:{args.person_port}: {e}",
-                  file=sys.stderr)  # fmt: skip
-            sys.exit(2)
+            plumbing.fail(f"--partner person: cannot serve the page on {args.person_host}:{args.person_port}: {e}")
         self.server.daemon_threads = True
         self.server.handle_error = lambda request, address: None  # a browser gone mid-reply: not the run's concern
         self.port = self.server.server_address[1]

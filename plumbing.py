@@ -9,8 +9,8 @@ own: its Args class (the command line and checkpoints read its fields and docstr
 `evaluate`, and its sampler's `check_sampler_args`; a sampler is reached only through the hooks of
 `Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
 (each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
-agent (SAC's networks, optimizers, the rates they were given (lrs), normalizer, n_updates), buffer, graph,
-encountered, segments, plan_seconds and waiting. Arrows run one way: scripts -> plumbing -> speed (whether
+agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments, plan_seconds
+and waiting. Arrows run one way: scripts -> plumbing -> speed (whether
 bf16 pays here), fetch5_env, oracle_graph. The update's speed tricks are speed.py's.
 
 Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
@@ -136,7 +136,7 @@ def adam_rates(args, trained: bool = True) -> list[tuple[float, str]]:
 
 
 def rates_text(lrs: list[float], whys: list[str]) -> str:
-    """The first line's rates: what Adam was given (SAC.lrs: the actor's, the critic's), each with why."""
+    """The first line's rates: what Adam was given (the actor's, the critic's), each with why."""
     if whys[0] == whys[1]:
         return f"{lrs[0]:g} / {lrs[1]:g} ({whys[0]})"
     return " / ".join(f"{lr:g} ({why})" for lr, why in zip(lrs, whys, strict=True))
@@ -413,9 +413,10 @@ def version_warning(state: dict) -> str | None:
 def save_state(run) -> dict:
     """Everything the rest of the run depends on (SPEC §10): a resumed run is the uninterrupted one."""
     agent, learner = run.learner.agent, run.learner
+    rates = [rate for rate, _ in adam_rates(run.args, trained=False)]  # the rule's, kept: resumed elsewhere too
     state = dict(
         script=script_of(type(run.args)), env_version=ENV_VERSION, versions=library_versions(),
-        args=dataclasses.asdict(run.args),
+        args=dataclasses.asdict(run.args) | dict(lr_actor=rates[0], lr_critic=rates[1]),
         counters=dict(epoch=run.epoch, cycle=run.cycle, segments=learner.segments, goals=run.sampler.goals,
                       n_updates=agent.n_updates),
         epoch_so_far=dict(tally=copy.deepcopy(run.tally), stats=plain(run.sampler.stats),
@@ -543,8 +544,7 @@ def restore(run, state: dict, path: str, flag: str):
 
 
 def checkpoint_error(flag: str, path: str, reason: str):
-    reason = " ".join(str(reason).split())[:300]  # one line, however long torch's message
-    fail(f"{flag}: cannot load checkpoint {path!r}: {reason}")
+    fail(f"{flag}: cannot load checkpoint {path!r}: {' '.join(str(reason).split())[:300]}")  # one line, however long
 
 
 def fail(message: str):
@@ -956,12 +956,11 @@ def evaluate_checkpoint(run, state: dict, evaluate, planner=None) -> int:
         return 0
     checkpoint = Path(args.checkpoint).resolve()
     agent = "paper" if paper else f"epoch{run.epoch}"  # the paper's file does not say its epoch
-    suffix = "_oracle" if args.plan_on == "oracle" else ""
     # a run's checkpoint: beside it, in its run folder; the paper's file (`paper`: in the download cache) is no
     # run's: in --runs-dir, where a run's results are
     folder = Path(args.runs_dir).resolve() if paper else checkpoint.parent
     folder.mkdir(parents=True, exist_ok=True)
-    out = claim_name(folder, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{suffix}")
+    out = claim_name(folder, f"eval_{checkpoint.stem}_{agent}_seed{args.seed}{'_oracle' * (args.plan_on == 'oracle')}")
     result = dict(checkpoint=str(checkpoint), agent="the paper's" if paper else "ours",
                   epoch=None if paper else run.epoch, seed=args.seed, goals_per_class=args.eval_goals_per_class,
                   planner=args.plan_on, sr=sr, seconds=time.perf_counter() - t)  # fmt: skip
@@ -1082,6 +1081,7 @@ class RunFolder:
 
     def __init__(self, run, state: dict | None, init: dict | None = None):
         args, agent = run.args, run.learner.agent
+        lrs = [opt.defaults["lr"] for opt in (agent.actor_opt, agent.critic_opt)]  # what Adam was given (SPEC §12)
         if state is not None:
             restore(run, state, args.resume, "--resume")
             progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
@@ -1098,7 +1098,7 @@ class RunFolder:
                     self.dir.mkdir(parents=True, exist_ok=True)
                 except OSError as e:
                     fail(f"--runs-dir {args.runs_dir!r}: cannot create {str(self.dir)!r}: {e}")
-                config = dict(dataclasses.asdict(args), workers=world() * args.num_envs, adam_rates=agent.lrs)
+                config = dict(dataclasses.asdict(args), workers=world() * args.num_envs, adam_rates=lrs)
                 if args.init_from:  # which file (the paper's agent is not in the repository: its hash names it)
                     with open(args.init_from, "rb") as f:
                         config["init_from_sha256"] = hashlib.file_digest(f, "sha256").hexdigest()
@@ -1110,7 +1110,7 @@ class RunFolder:
         self.saved_at, self.before_evaluation, self.before_cycle = None, None, None  # see end_epoch, evaluate, cycle
         whys = [why for _, why in adam_rates(args)] if state is None else ["the run's own"] * 2  # as it began
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {agent.device} | "
-                 f"rates {rates_text(agent.lrs, whys)}", final=True)  # fmt: skip
+                 f"rates {rates_text(lrs, whys)}", final=True)  # fmt: skip
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 

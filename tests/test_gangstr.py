@@ -924,6 +924,7 @@ def test_a_second_ctrl_c_aborts_at_once_and_keeps_the_last_checkpoint(tmp_path):
         (["--alpha", "-1"], "-1"),
         (["--lr-actor", "nan"], "nan"),
         (["--lr-actor", "inf"], "inf"),
+        (["--lr-critic", "-0.001"], "--lr-critic must be non-negative, got -0.001"),
         (["--lr-critic", "-1"], "-1"),
         (["--eval-goals-per-class", "0"], "0"),
         (["--batch-size", "100000"], "100000"),
@@ -1023,6 +1024,8 @@ def test_an_args_built_in_code_gets_the_rates_the_command_line_gets(monkeypatch,
     sac = script.SAC(script.Args(n_blocks=3, num_envs=num_envs), fetch5_env.obs_size(3), "cpu")  # no parse_args
     assert sac.lrs == pytest.approx([want, want], rel=1e-12)
     assert script.Args.lr_actor == script.Args.lr_critic == 0  # not given: the rule's (adam_rates)
+    sac = script.SAC(script.Args(n_blocks=3, num_envs=num_envs, lr_critic=2e-3), fetch5_env.obs_size(3), "cpu")
+    assert sac.lrs == pytest.approx([want, 2e-3], rel=1e-12)  # one given, as given; the other by the rule
 
 
 def test_paper_rates_with_init_from_is_refused_in_one_line(tmp_path, capsys):
