@@ -1080,10 +1080,13 @@ def test_the_first_line_prints_the_rates_adam_was_given_and_why_by_the_rule(monk
     assert line.endswith(says), line
 
 
-def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path):
-    out = run_script(*RESUME, "--n-epochs", "1", runs_dir=tmp_path / "a")
-    assert out.returncode == 0 and out.stdout.splitlines()[0].endswith("rates 0.0003 / 0.0003 (x0.3 of the paper's: "
-                                                                       "below 24 workers)")  # fmt: skip
+def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path, capsys):
+    def lines(*argv, runs_dir) -> list[str]:  # a run in this process (no interpreter to start): what it printed
+        assert gh.main([*argv, "--runs-dir", str(runs_dir)]) == 0
+        return capsys.readouterr().out.splitlines()
+
+    first = lines(*RESUME, "--n-epochs", "1", runs_dir=tmp_path / "a")[0]
+    assert first.endswith("rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)")
     (run,) = (tmp_path / "a").iterdir()
     assert json.loads((run / "config.json").read_text())["adam_rates"] == pytest.approx([3e-4, 3e-4], rel=1e-12)
     state = torch.load(run / "checkpoint.pt", weights_only=True)  # as a run started before x0.3 saved it
@@ -1091,15 +1094,15 @@ def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_sta
     for opt in ("actor_opt", "critic_opt"):
         state[opt]["param_groups"][0]["lr"] = 1e-3
     torch.save(state, run / "checkpoint.pt")
-    out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "a")
-    assert out.returncode == 0 and "| rates 0.001 / 0.001 (the run's own)" in out.stdout.splitlines()[1]
+    out = lines("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "a")
+    assert "| rates 0.001 / 0.001 (the run's own)" in out[1]  # after "resumed"
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")] == [1e-3, 1e-3]
-    out = run_script(*RESUME, "--n-epochs", "1", "--lr-actor", "5e-4", "--lr-critic", "6e-4", runs_dir=tmp_path / "b")
-    assert out.returncode == 0 and out.stdout.splitlines()[0].endswith("| rates 0.0005 / 0.0006 (given)")
+    first = lines(*RESUME, "--n-epochs", "1", "--lr-actor", "5e-4", "--lr-critic", "6e-4", runs_dir=tmp_path / "b")[0]
+    assert first.endswith("| rates 0.0005 / 0.0006 (given)")
     (run,) = (tmp_path / "b").iterdir()
-    out = run_script("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
-    assert out.returncode == 0 and "| rates 0.0005 / 0.0006 (the run's own)" in out.stdout.splitlines()[1]
+    out = lines("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
+    assert "| rates 0.0005 / 0.0006 (the run's own)" in out[1]
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["counters"]["epoch"] == 2 and (state["args"]["lr_actor"], state["args"]["lr_critic"]) == (5e-4, 6e-4)
     assert [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")] == [5e-4, 6e-4]
