@@ -10,8 +10,8 @@ own: its Args class (the command line and checkpoints read its fields and docstr
 `Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
 (each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
 agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments, plan_seconds
-and waiting. Arrows run one way: scripts -> plumbing -> speed (whether
-bf16 pays here), fetch5_env, oracle_graph. The update's speed tricks are speed.py's.
+and waiting. Arrows run one way: scripts -> plumbing -> speed (whether bf16 pays here), fetch5_env, oracle_graph.
+The update's speed tricks are speed.py's; Adam's rates, this file's adam_rates (SPEC §12).
 
 Sections: command line; processes (SPEC §11); checkpoints (SPEC §10) and the paper's trained agent;
 outputs (progress.csv, TensorBoard, console, --eval-only results and videos); interruptions; a run's
