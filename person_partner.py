@@ -164,7 +164,9 @@ class PersonPartner:
         os.replace(tmp, path)
         self.picks = path.open("a", newline="")
         self.writer = csv.DictWriter(self.picks, fieldnames=PICK_COLUMNS)
-        self.thread = threading.Thread(target=self.server.serve_forever, name="person-partner", daemon=True)
+        # polled every 0.05 s, not socketserver's 0.5: close() waits for the next poll (each test's run, too)
+        serve = lambda: self.server.serve_forever(poll_interval=0.05)  # noqa: E731
+        self.thread = threading.Thread(target=serve, name="person-partner", daemon=True)
         self.thread.start()
         self.publish(None)
         host = self.args.person_host

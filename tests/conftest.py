@@ -9,6 +9,9 @@ import pytest
 # the runs the tests start, would only contend with the other worker's (a SAC test ran 1.4-3x slower so).
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+# torch.compile's kernels compiled in the test's process: inductor's pool of compile workers, each importing
+# torch (10 processes here), costs more than it saves for the few kernels a test compiles
+os.environ.setdefault("TORCHINDUCTOR_COMPILE_THREADS", "1")
 
 # Headless machines render through OSMesa (Debian's libosmesa6), if it is installed: asking for it
 # without the library would break `import mujoco` itself, and every test with it. A desktop keeps its GL.

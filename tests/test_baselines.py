@@ -4,10 +4,9 @@
 import csv
 import difflib
 import re
-import subprocess
-import sys
 from pathlib import Path
 
+import inprocess
 import numpy as np
 import pytest
 import torch
@@ -28,8 +27,7 @@ TINY = ["--n-epochs", "1", "--n-cycles", "2", "--n-segments", "4", "--n-updates"
 @pytest.mark.parametrize("script", ["lp_baseline.py", "vds_baseline.py"])
 @pytest.mark.parametrize("n_blocks", [3, 5])
 def test_baseline_runs_end_to_end(tmp_path, script, n_blocks):
-    cmd = [sys.executable, script, "--n-blocks", str(n_blocks), *TINY, "--runs-dir", str(tmp_path)]
-    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=180)
+    out = inprocess.run_script(script, "--n-blocks", n_blocks, *TINY, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     (run_dir,) = tmp_path.iterdir()
     assert run_dir.name.startswith(script.removesuffix(".py"))

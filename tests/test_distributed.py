@@ -11,12 +11,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import inprocess
 import pytest
 import torch
 from dist_worker import TINY
 
 import gangstr_hme as gh
 
+pytestmark = pytest.mark.xdist_group("torchrun")  # under -n 2, on one worker: one torchrun launch for the module
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -209,8 +211,7 @@ TIMING = ("time_", "steps_per_second")
 
 
 def run(*argv, runs: Path, script="gangstr_hme.py") -> subprocess.CompletedProcess:
-    cmd = [sys.executable, script, *argv, "--runs-dir", str(runs)]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = inprocess.run_script(script, *argv, runs_dir=runs)  # one process: this one (see there)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     return proc
 

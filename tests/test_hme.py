@@ -2,12 +2,11 @@
 internalization and rehearsal, the ablations (SPEC §7)."""
 
 import csv
-import subprocess
-import sys
 from collections import Counter, deque
 from pathlib import Path
 from types import SimpleNamespace
 
+import inprocess
 import numpy as np
 import pytest
 import torch
@@ -432,8 +431,7 @@ TINY = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "3", "--n-segments",
     ids=["frontier-and-beyond", "frontier", "beyond", "NI", "NG", "SP-100", "frontier-zpd", "beyond-novelty"],
 )
 def test_every_strategy_and_ablation_runs_end_to_end(tmp_path, flags):
-    cmd = [sys.executable, "gangstr_hme.py", *flags, *TINY, "--runs-dir", str(tmp_path)]
-    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    out = inprocess.run_script("gangstr_hme.py", *flags, *TINY, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     (run_dir,) = tmp_path.iterdir()
     (row,) = csv.DictReader((run_dir / "progress.csv").open())
@@ -447,8 +445,7 @@ def test_logged_social_share_matches_sp_ratio(tmp_path):
     flags = ["--sp-ratio", "0.25", "--n-cycles", "400", "--n-segments", "1", "--segment-len", "2",
              "--stable-steps", "1", "--n-updates", "0", "--n-epochs", "1", "--n-blocks", "3",
              "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
-    out = subprocess.run([sys.executable, "gangstr_hme.py", *flags, "--runs-dir", str(tmp_path)], cwd=ROOT,
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    out = inprocess.run_script("gangstr_hme.py", *flags, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     (run_dir,) = tmp_path.iterdir()
     (row,) = csv.DictReader((run_dir / "progress.csv").open())

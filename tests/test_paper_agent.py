@@ -21,6 +21,7 @@ from collections import OrderedDict
 from pathlib import Path
 from types import SimpleNamespace
 
+import inprocess
 import numpy as np
 import pytest
 import torch
@@ -39,9 +40,8 @@ BRIEF = ["--n-epochs", "1", "--n-cycles", "1", "--n-segments", "1", "--n-updates
          "--eval-goals-per-class", "1", "--threads", "1"]  # fmt: skip
 
 
-def run_script(*args, runs_dir, timeout=180):
-    cmd = [sys.executable, "gangstr_hme.py", *args, "--runs-dir", str(runs_dir)]
-    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+def run_script(*args, runs_dir) -> subprocess.CompletedProcess:
+    return inprocess.run_script("gangstr_hme.py", *args, runs_dir=runs_dir)  # as in a new process (see there)
 
 
 def read_rows(run_dir: Path) -> list[dict]:
@@ -575,8 +575,7 @@ def same_numbers(rows: list[dict], fixture: list[dict]) -> bool:
 def test_a_run_without_init_from_computes_what_it_did_before_the_fine_tuning_flags(tmp_path, script, flags):
     tiny = [*TINY[: TINY.index("--sp-ratio")], *flags, "--n-blocks", "3", "--n-epochs", "1", "--seed", "3",
             "--paper-rates"]  # fmt: skip  # the fixtures' rates: made before x0.3 below 24 workers (SPEC §12)
-    cmd = [sys.executable, script, *tiny, "--runs-dir", str(tmp_path)]
-    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=180)
+    out = inprocess.run_script(script, *tiny, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     (run,) = tmp_path.iterdir()
     rows, fixture = read_rows(run), FIXTURES / f"{Path(script).stem}.csv"

@@ -16,6 +16,7 @@ from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
+import inprocess
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -724,9 +725,12 @@ TINY = ["--n-blocks", "3", "--n-epochs", "1", "--n-cycles", "1", "--n-segments",
         "--threads", "1"]  # fmt: skip
 
 
-def script(*argv, runs, env=None, timeout=120):
+def script(*argv, runs, env=None) -> subprocess.CompletedProcess:
+    """gangstr_hme.py's run: in this process (inprocess.py), or in a new one with an environment of its own."""
+    if env is None:
+        return inprocess.run_script("gangstr_hme.py", *argv, runs_dir=runs)
     cmd = [sys.executable, "gangstr_hme.py", *argv, "--runs-dir", str(runs)]
-    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=env)
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
 
 
 @pytest.mark.parametrize(

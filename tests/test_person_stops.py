@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from test_gangstr import TIMING
 
+pytestmark = pytest.mark.xdist_group("person_stops")  # under -n 2, on one worker: the uninterrupted run made once
 ROOT = Path(__file__).resolve().parent.parent
 FLAGS = ["--partner", "person", "--person-port", "0", "--person-timeout", "60", "--sp-ratio", "1", "--n-blocks", "3",
          "--n-epochs", "2", "--n-cycles", "3", "--n-segments", "2", "--n-updates", "1", "--batch-size", "16",
