@@ -21,6 +21,23 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.ut
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
+def pytest_configure(config):
+    """Under -n 2, the tests of one xdist_group run on one worker: those that share a costly module fixture (a
+    torchrun launch, an uninterrupted run) make it once, not once a worker. -n alone means xdist's "load";
+    this makes it "loadgroup" (pytest-xdist: the controller schedules by group, each worker names its tests'
+    groups in their ids)."""
+    if getattr(config.option, "dist", "no") == "load":
+        config.option.dist = "loadgroup"
+    if getattr(config, "workerinput", {}).get("loadgroup"):
+        config.option.loadgroup = True
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """pytest-xdist's hook, on the controller, for each worker before it starts: what it is told."""
+    node.workerinput["loadgroup"] = node.config.option.dist == "loadgroup"
+
+
 @pytest.fixture
 def gl():
     """MuJoCo, with a working OpenGL backend. Rendering must work in CI (CI=true); elsewhere a machine

@@ -853,7 +853,7 @@ def tensorboard_rows(run: Path) -> list[tuple[int, float]]:
     return tensorboard_scalars(run)[plumbing.tensorboard_tag("global_sr")]
 
 
-@pytest.mark.xdist_group("uninterrupted")  # under -n 2, on one worker: its fixture's run made once (pyproject.toml)
+@pytest.mark.xdist_group("uninterrupted")  # under -n 2, on one worker: its fixture made once (conftest.py)
 @pytest.mark.parametrize(
     "sig, at",
     [
