@@ -1,4 +1,4 @@
-"""Where one worker's epoch goes (docs/speed.md, "Where an epoch goes"): a learner of gangstr_hme.py with the
+"""Where one worker's epoch goes (docs/speed.md): a learner of gangstr_hme.py with the
 main job's settings (SP-20%, one worker, the paper's cycle of 10 segments and 30 updates of 256), built in this
 process, timed over --cycles training cycles after --warmup ones, then one evaluation. Parts:
 
