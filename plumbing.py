@@ -1001,8 +1001,8 @@ class Stopper:
 
     def __init__(self, tmp: Path):
         self.tmp, self.requested, self.abortable_now = tmp, False, False
-        for sig in (signal.SIGINT, signal.SIGTERM):  # set even if a parent started us with SIGINT ignored
-            signal.signal(sig, self.handle)
+        # set even if a parent started us with SIGINT ignored; the handlers before, which RunFolder gives back
+        self.before = {sig: signal.signal(sig, self.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def handle(self, signum, frame):
         name = signal.Signals(signum).name
@@ -1073,7 +1073,7 @@ def parse_command_line(Args: type, check_sampler_args, argv=None):
     return args, state, init
 
 
-class RunFolder:
+class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
     """A training run's outputs and stops (SPEC §10): the run restored from --resume's checkpoint (or started
     from --init-from's networks), in that checkpoint's folder or a new one, runs/{exp_name}__{seed}__{time},
     holding config.json; progress.csv and TensorBoard (process 0); the checkpoint; the Stopper that Ctrl-C
@@ -1114,13 +1114,12 @@ class RunFolder:
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 
-    def __enter__(self) -> RunFolder:
-        return self
-
     def __exit__(self, *exc):
         self.sampler.close()
         if self.logger is not None:
             self.logger.close()
+        for sig, handler in self.stopper.before.items():  # main()'s caller (Python's) gets its own back
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
 
     def stop_requested(self) -> bool:
         """Whether Ctrl-C or SIGTERM reached any process: all stop at the same cycle boundary."""

@@ -883,6 +883,20 @@ def test_ctrl_c_stops_the_run_even_when_the_parent_ignores_sigint(tmp_path, unin
     same_rows(uninterrupted, read_rows(run))
 
 
+def test_a_python_caller_of_main_gets_its_ctrl_c_and_sigterm_back(tmp_path):
+    """main() called from Python (a notebook, a fork driving the script): the run's Stopper takes Ctrl-C and
+    SIGTERM while it runs and gives the caller's handlers back at its end (kept, a second Ctrl-C would end the
+    caller's process: Stopper.handle)."""
+    mine = lambda signum, frame: None  # noqa: E731
+    before = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert gh.main([*RESUME, "--n-epochs", "1", "--runs-dir", str(tmp_path)]) == 0
+        assert signal.getsignal(signal.SIGINT) is mine and signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
 def test_a_second_ctrl_c_aborts_at_once_and_keeps_the_last_checkpoint(tmp_path):
     slow = [*RESUME, "--n-cycles", "1", "--n-epochs", "3", "--n-updates", "300"]  # cycles of a second or more
     cmd = [sys.executable, "-u", "gangstr_hme.py", *slow, "--runs-dir", str(tmp_path)]
