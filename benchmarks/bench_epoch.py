@@ -97,8 +97,7 @@ def main():
     for _ in range(args.repeats):
         for c in conditions:
             runs[c].append(profile(*c, args))
-    parts = ["collecting", *COLLECT, "collecting: rest", "updating", "the batch", "to tensors", "SAC step", "Adam",
-             "updating: rest"]  # fmt: skip
+    parts = ["collecting", *COLLECT, "collecting: rest", "updating", *UPDATE, "updating: rest"]
     for (blocks, precision, threads), got in runs.items():
         med = {k: statistics.median(r[k] for r in got) for k in got[0]}
         cycle = med["collecting"] + med["updating"]
