@@ -121,7 +121,9 @@ class Args:
     num_envs: int = 1
     """workers in this process (SPEC §11), stepped in lockstep; under torchrun, this many per process"""
     threads: int = 0
-    """torch CPU threads (0: all cores; one while several envs step in threads, see drive)"""
+    """torch CPU threads (0: all cores; one with --overlap, and while several envs step in threads, see drive)"""
+    overlap: bool = True
+    """a cycle's SAC updates in a thread beside its collection, on the replay as it was before (SPEC §12); or after"""
     cuda: bool = False
     """train on the GPU if one is available"""
     compile: bool = False
@@ -137,9 +139,8 @@ class Args:
     init_prior_count: int = 100_000
     """with --init-from the paper's file: its normalizer statistics count as this many observations"""
     init_lr_scale: float = 0.1
-    """with --init-from: both learning rates are multiplied by this; at one worker the paper's rates (1) lost the
-    paper's agent, 0.2 (Adam's square-root rule for its batch) kept S5 at 0.43-0.82 over 10 epochs and 0.1 at
-    0.80-0.92 (docs/results.md, "Continuing the paper's training")"""
+    """with --init-from: both learning rates times this; at one worker 1 lost the paper's agent, 0.2 (Adam's square-root
+    rule) kept S5 at 0.43-0.82 over 10 epochs, 0.1 at 0.80-0.92 (docs/results.md, "Continuing the paper's training")"""
     init_warmup: int = 2000
     """with --init-from: SAC updates over which both rates rise linearly from 0 (a fresh Adam's first steps move every
     weight by about lr, a trained net's too; 2,000 = 2 / (1 - beta2): Ma and Yarats 2021's untuned warm-up); 0: none"""
@@ -782,11 +783,11 @@ class Worker:
         self.left, self.segments = 0, []  # segments it may still run this cycle; those it ran
 
     def seed(self, *words: int):
-        """Two independent random streams from the seed words (SPEC §3, §11): the worker's own (self.rng: cycle
-        kinds, goals, paths, noise, HER draws) and its env's (block placements). Both are children of one
-        SeedSequence: seeding both with the same number would make them one stream read twice."""
-        mine, env = np.random.SeedSequence(words).spawn(2)
-        self.rng = np.random.default_rng(mine)
+        """Independent random streams from the seed words (SPEC §3, §11): the worker's own (self.rng: cycle
+        kinds, goals, paths, noise, HER draws), its env's (block placements) and, with --overlap, its updates'
+        batches' (batch_rng). Children of one SeedSequence: seeding two with one number would make one stream."""
+        mine, env, batches = np.random.SeedSequence(words).spawn(3)
+        self.rng, self.batch_rng = np.random.default_rng(mine), np.random.default_rng(batches)
         self.env.reset(seed=int(env.generate_state(1)[0]))
 
 
@@ -893,9 +894,9 @@ class Sampler:
         per-process counts: a number every process already holds whole (merged in after_cycle) would be
         multiplied by the number of processes.
       state_dict(), load_state_dict(s): its checkpoint entries, top-level keys of the checkpoint, which
-        load_state_dict gets whole; never one of plumbing.save_state's own: script, env_version, versions,
-        args, counters, epoch_so_far, rows, actor, critic, critic_target, actor_opt, critic_opt, normalizer,
-        graph, encountered, rng, env_rng, buffer (nor format). Values that torch.load(weights_only=True)
+        load_state_dict gets whole; never one of plumbing.save_state's own: script, env_version, versions, args,
+        counters, epoch_so_far, rows, actor, critic, critic_target, actor_opt, critic_opt, normalizer, graph,
+        encountered, rng, env_rng, batch_rng, buffer (nor format). Values that torch.load(weights_only=True)
         accepts: tensors, Python numbers, str, bool, None, and lists, tuples and dicts of them (no numpy).
         state_dict is called at cycle boundaries only: after after_cycle (the epoch's checkpoint, a stop's),
         or, where gives_up_cycles, also before each cycle; load_state_dict on --resume, after the Learner's
@@ -903,6 +904,8 @@ class Sampler:
         (as autotelic_goal's) is the uninterrupted run's.
       open(folder, stopping), close(): a training run's folder, for files of its own, and whether Ctrl-C or
         SIGTERM asked the run to stop (a sampler that waits stops waiting); then the run's end.
+      reads_the_nets: whether its cycle reads the networks beyond acting, or what after_update trains (--overlap runs
+        it beside the cycle, in the updates' thread): then the updates run after each cycle (as for gives_up_cycles).
       gives_up_cycles: whether its cycle may raise plumbing.CycleGivenUp (False here), before the cycle's segments
         are learnt from, when a stop request ends a wait (`stopping`): the run then gives the cycle up, its
         checkpoint the state saved before the cycle (one process only), and --resume runs it again.
@@ -919,7 +922,7 @@ class Sampler:
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
     goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome)."""
 
-    gives_up_cycles = False
+    gives_up_cycles, reads_the_nets = False, False
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
@@ -1133,8 +1136,7 @@ class Learner:
     def train(self, rngs: list[np.random.Generator], after_update=lambda batch, target: {}) -> dict:
         """The cycle's SAC updates, each on a batch from every worker's replay (drawn with `rngs`, the
         workers' streams); after each, the goal sampler's hook. The mean of each logged value, read once a cycle."""
-        args, infos = self.args, []
-        her_prob = 1 - 1 / (1 + args.her_k)
+        args, infos, her_prob = self.args, [], 1 - 1 / (1 + self.args.her_k)
         # --init-learning-starts (SPEC §10): no update until every worker's replay, in every process, holds that many
         # segments (all processes update together or none; a resumed job's emptied replays fill again first)
         n = args.init_learning_starts if args.init_from else 0
@@ -1215,21 +1217,20 @@ class Run:
 
 
 def run_cycle(run: Run) -> list[list[Segment]]:
-    """One cycle of every worker (its goal sampler's program), in lockstep; then what the workers share
-    is merged (SPEC §11). Each worker's segments."""
+    """One cycle of every worker (its goal sampler's program), in lockstep. Each worker's segments."""
     for w in run.workers:
         w.left, w.segments = run.args.n_segments, []
     drive(run.learner.agent, {w: run.sampler.cycle(w) for w in run.workers}, f"{type(run.sampler).__name__}.cycle")
     plumbing.check_budgets(run)  # each worker spent exactly its segments (a forked sampler may not)
-    run.sampler.after_cycle()
     return [w.segments for w in run.workers]
 
 
 def one_cycle(run: Run):
-    """Collect a cycle's segments, learn from them (replay, normalizer, semantic graph), then the cycle's
-    SAC updates (SPEC §5)."""
+    """Collect a cycle's segments, merge what the workers share (SPEC §11), learn from them (replay, normalizer,
+    semantic graph), then the cycle's SAC updates (SPEC §5), with --overlap beside the collection (speed.py)."""
     tally, t = run.tally, time.perf_counter()
     per_worker = run_cycle(run)
+    run.sampler.after_cycle()
     run.learner.learn_from(per_worker)
     tally["wins"] += sum(s.success for ws in per_worker for s in ws)
     tally["tries"] += sum(len(ws) for ws in per_worker)

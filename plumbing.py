@@ -8,7 +8,7 @@ cleanrl_utils. It imports no training script and knows no goal sampler. A script
 own: its Args class (the command line and checkpoints read its fields and docstrings), its run, its
 `evaluate`, and its sampler's `check_sampler_args`; a sampler is reached only through the hooks of
 `Sampler`'s docstring. What it reads of a run is what every script's Run has: args, n_workers, workers
-(each one's index, rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
+(each one's index, rng, batch_rng, env and seed()), classes, epoch, cycle, tally, rows, sampler, and the learner's
 agent (SAC's networks, optimizers, normalizer, n_updates), buffer, graph, encountered, segments, plan_seconds
 and waiting. Arrows run one way: scripts -> plumbing -> speed (whether bf16 pays here), fetch5_env, oracle_graph.
 The update's speed tricks are speed.py's; Adam's rates, this file's adam_rates (SPEC §12).
@@ -377,9 +377,10 @@ ENV_VERSION = fetch5_env.ENV_VERSION  # a checkpoint names the environment it wa
 CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
 NETWORKS = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # SAC's, as saved
 REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays
+WORKER_RNGS = dict(rng=lambda w: w.rng, env_rng=lambda w: w.env.np_random, batch_rng=lambda w: w.batch_rng)
 # Args fields newer than some checkpoints, each with the value that computes what the run computed before it:
-# a run started with --init-from before the fine-tuning defaults (SPEC §10) keeps its rates on --resume.
-PREDATED = dict(init_lr_scale=1.0, init_warmup=0, init_learning_starts=0)
+# one started with --init-from before the fine-tuning defaults (SPEC §10) keeps its rates; before --overlap, its order.
+PREDATED = dict(init_lr_scale=1.0, init_warmup=0, init_learning_starts=0, overlap=False)
 
 
 def script_of(Args: type) -> str:
@@ -428,8 +429,8 @@ def save_state(run) -> dict:
         graph=learner.graph.state_dict(),
         encountered=torch.tensor(sorted(learner.encountered), dtype=torch.int64),
         **run.sampler.state_dict(),
-        rng=[json.dumps(w.rng.bit_generator.state) for w in run.workers],  # each worker's, of this process
-        env_rng=[json.dumps(w.env.np_random.bit_generator.state) for w in run.workers],
+        # each worker's random streams, of this process: its own, its env's, its update batches' (--overlap)
+        **{key: [json.dumps(rng(w).bit_generator.state) for w in run.workers] for key, rng in WORKER_RNGS.items()},
     )  # fmt: skip
     if run.args.save_buffer:
         b, n = learner.buffer, learner.buffer.size
@@ -459,6 +460,7 @@ def load_state(run, s: dict):
     run.epoch, run.cycle, learner.segments, run.sampler.goals = c["epoch"], c["cycle"], c["segments"], c["goals"]
     agent.n_updates = c["n_updates"]
     run.tally, learner.plan_seconds = so_far["tally"], so_far["plan_seconds"]
+    run.tally.setdefault("wall", run.tally["collect"] + run.tally["update"])  # saved before time_epoch: no overlap
     run.sampler.stats = collections.Counter(so_far["stats"])
     run.rows = s["rows"]
     for name in NETWORKS:
@@ -478,9 +480,9 @@ def load_state(run, s: dict):
         run.sampler.stats.clear()  # this epoch's counts so far are process 0's own: the others start again
         run.tally.update(wins=0, tries=0)
         return
-    for w, rng, env_rng in zip(run.workers, s.get("rng", []), s.get("env_rng", []), strict=False):
-        w.rng.bit_generator.state = json.loads(rng)  # none for --eval-only, which draws from its own seeds
-        w.env.np_random.bit_generator.state = json.loads(env_rng)
+    for key, rng in WORKER_RNGS.items():  # none for --eval-only, which draws from its own seeds; no batch_rng
+        for w, saved in zip(run.workers, s.get(key, []), strict=False):  # before --overlap: its own seeds
+            rng(w).bit_generator.state = json.loads(saved)
     if "buffer" in s:
         b, n = learner.buffer, len(s["buffer"]["obs"][0])
         for k in REPLAY:
@@ -737,7 +739,7 @@ def new_tally(env_steps: int) -> dict:
     """An epoch's running totals for its progress.csv row: segment outcomes, the last cycle's losses,
     seconds per phase."""
     return dict(wins=0, tries=0, losses=dict.fromkeys(LOSSES, math.nan), collect=0.0, update=0.0, eval=0.0,
-                env_steps_at_start=env_steps)  # fmt: skip
+                wall=0.0, env_steps_at_start=env_steps)  # fmt: skip  # wall: the cycles' (with --overlap, not the sum)
 
 
 def finish_epoch(run, sr: dict[str, float]) -> dict:
@@ -746,7 +748,7 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
     learner, tally = run.learner, run.tally
     steps = learner.segments * run.args.segment_len  # all workers'
     goals, wins, tries = all_sum(np.array([run.sampler.goals, tally["wins"], tally["tries"]], dtype=np.float64))
-    seconds = tally["collect"] + tally["update"] + tally["eval"]
+    seconds = tally["wall"] + tally["eval"]  # the epoch's wall time
     met = np.array(sorted(learner.encountered), dtype=np.int64)  # configs met at any step of a segment
     nodes = np.asarray(learner.graph.masks, dtype=np.int64)
     row = plain(dict(
@@ -761,7 +763,7 @@ def finish_epoch(run, sr: dict[str, float]) -> dict:
         agent_nodes=learner.graph.n_nodes, agent_edges=learner.graph.n_edges, sr_classes=len(learner.graph.sr),
         **tally["losses"],
         time_collect=tally["collect"], time_update=tally["update"], time_eval=tally["eval"],
-        time_plan_and_graph=learner.plan_seconds,
+        time_plan_and_graph=learner.plan_seconds, time_epoch=seconds,
         steps_per_second=(steps - tally["env_steps_at_start"]) / max(seconds, 1e-9),
     ))  # fmt: skip
     run.rows.append(row)
@@ -805,7 +807,7 @@ def cycle_progress(run, detail: str):
     a, tally = run.args, run.tally
     if run.cycle != 1 and run.cycle % max(1, a.n_cycles // 10) != 0:
         return
-    seconds = tally["collect"] + tally["update"]
+    seconds = tally["wall"]
     rate = (run.learner.segments * a.segment_len - tally["env_steps_at_start"]) / max(seconds, 1e-9)
     per_cycle, per_eval = seconds / max(1, run.cycle), run.rows[-1]["time_eval"] if run.rows else 0.0
     epoch_left = per_cycle * (a.n_cycles - run.cycle) + per_eval
@@ -1109,8 +1111,9 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
         self.checkpoint, self.stopper = self.dir / "checkpoint.pt", Stopper(self.dir / "checkpoint.pt.tmp")
         self.saved_at, self.before_evaluation, self.before_cycle = None, None, None  # see end_epoch, evaluate, cycle
         whys = [why for _, why in adam_rates(args)] if state is None else ["the run's own"] * 2  # as it began
+        self.overlap, how = speed.overlap_of(run)  # with it, unless --threads, torch's threads: one
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {agent.device} | "
-                 f"rates {rates_text(lrs, whys)}", final=True)  # fmt: skip
+                 f"rates {rates_text(lrs, whys)} | {how}", final=True)  # fmt: skip
         self.sampler = run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 
@@ -1131,28 +1134,26 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
         the cycle, and --resume runs the cycle again. Only for a sampler that says it may (its gives_up_cycles),
         in one process, as a person partner is."""
         gives_up = world() == 1 and run.sampler.gives_up_cycles
-        self.before_cycle = save_state(run) if gives_up else None  # cheap: views (it gives up before learning)
+        self.before_cycle, t = save_state(run) if gives_up else None, time.perf_counter()  # cheap: views
         try:
-            one_cycle(run)
+            speed.overlapped_cycle(run, sys.modules[one_cycle.__module__]) if self.overlap else one_cycle(run)
         except CycleGivenUp:
             if self.before_cycle is None:
                 raise
             return False
-        self.before_cycle = None
+        self.before_cycle, run.tally["wall"] = None, run.tally["wall"] + time.perf_counter() - t
         return True
 
     def evaluate(self, run, evaluate) -> dict | None:
         """evaluate(run), timed for the epoch's row. In one process a stop request ends it at once: None,
         and the checkpoint stop() saves is the state from before it (under torchrun the processes finish it)."""
-        self.before_evaluation = save_state(run) if world() == 1 else None  # cheap: views of the live tensors
-        t = time.perf_counter()
+        self.before_evaluation, t = save_state(run) if world() == 1 else None, time.perf_counter()  # cheap: views
         try:
             with self.stopper.abortable(allowed=self.before_evaluation is not None):
                 sr = evaluate(run)
         except KeyboardInterrupt:
             return None
-        run.tally["eval"] = time.perf_counter() - t
-        self.before_evaluation = None
+        run.tally["eval"], self.before_evaluation = time.perf_counter() - t, None
         return sr
 
     def end_epoch(self, run, sr: dict[str, float]):
@@ -1168,7 +1169,7 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
         learned = f"{learning_text(run.args, math.nan, waiting)} | " if run.args.n_updates == 0 or waiting else ""
         progress(f"epoch {row['epoch']:3d} | steps {row['env_steps']:,} | SR {sr['global']:.3f} | {per_class} | "
                  f"{learned}"
-                 f"{row['steps_per_second']:.0f} steps/s | {sum(row[k] for k in row if k.startswith('time_')):.0f} s",
+                 f"{row['steps_per_second']:.0f} steps/s | {row['time_epoch']:.0f} s",
                  final=True)  # fmt: skip
 
     def stop(self, run) -> int:

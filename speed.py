@@ -29,6 +29,8 @@ import functools
 import math
 import os
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +102,9 @@ def fused_adam_refuses(opt: torch.optim.Optimizer) -> str:
     return ""
 
 
-FAST = dict(dtype=None, kernels=False, own=None)  # within fast_nets: its arguments, and the script's own nets
+# Within fast_nets: its arguments and thread; the script's own nets, kept after it (another thread may still be
+# in a fast net it looked up before the block ended: it runs the own ones)
+FAST = dict(dtype=None, kernels=False, thread=None, own=None)
 
 
 @contextlib.contextmanager
@@ -109,20 +113,23 @@ def fast_nets(script, dtype: torch.dtype, kernels: bool = True):
     node_sum, edge_max and MLP.forward are this file's, the same math. On the CPU, if `kernels`, the kernels
     below (not while torch.compile traces: --compile fuses the plain ops itself); elsewhere the large nets'
     products in `dtype` (--precision; sums, heads, losses and targets stay fp32). The script looks these names
-    up at call time: outside this block (acting, evaluation, a goal sampler's own use), its own nets run."""
+    up at call time: outside this block (acting, evaluation, a goal sampler's own use), and in any other thread
+    while it is open (the collection beside the updates, speed.overlapped_cycle), its own nets run."""
     own, before = (script.node_sum, script.edge_max, script.MLP.forward), dict(FAST)
-    FAST.update(dtype=dtype, kernels=kernels, own=own)
+    FAST.update(dtype=dtype, kernels=kernels, thread=threading.get_ident(), own=own)
     script.node_sum, script.edge_max, script.MLP.forward = fast_node_sum, fast_edge_max, fast_forward
     try:
         yield
     finally:
         script.node_sum, script.edge_max, script.MLP.forward = own
-        FAST.update(before)
+        FAST.update(before, own=own)
 
 
 def kernels_here(x: torch.Tensor) -> bool:
-    """Whether the CPU kernels compute the net that x goes through: within fast_nets with kernels, on the CPU."""
-    return FAST["kernels"] and x.is_cpu and not torch.compiler.is_compiling()
+    """Whether the CPU kernels compute the net that x goes through: within fast_nets with kernels, in its thread,
+    on the CPU."""
+    mine = FAST["thread"] == threading.get_ident()
+    return FAST["kernels"] and mine and x.is_cpu and not torch.compiler.is_compiling()
 
 
 def fast_node_sum(net, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
@@ -143,10 +150,10 @@ def fast_edge_max(net, edges: torch.Tensor, n: int) -> torch.Tensor:
 def fast_forward(net, x: torch.Tensor) -> torch.Tensor:
     """The script's MLP.forward: a head (no output ReLU) by Head on the CPU; a large net (run on every edge or
     node) Linear -> ReLU -> Linear (-> ReLU) with its products in the update's dtype (in fp32, the same ops as
-    the script's); any other net, the script's own."""
+    the script's); any other net, or any net in another thread, the script's own."""
     if kernels_here(x) and not net.out_relu:
         return Head.apply(x, *net.params())
-    if not net.large:
+    if not net.large or FAST["thread"] != threading.get_ident():
         return FAST["own"][2](net, x)
     x, w1, b1, w2, b2 = (t.to(FAST["dtype"]) for t in (x, *net.params()))
     x = F.linear(F.relu(F.linear(x, w1, b1)), w2, b2)
@@ -258,14 +265,16 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
 @contextlib.contextmanager
 def physics_first(n_envs: int):
     """Within it, torch runs one thread while this process's n_envs envs step in several: torch's idle threads
-    would spin on the cores the envs step on, and acting batches are small (measured: physics 1.7x faster)."""
-    threads = torch.get_num_threads()
-    if physics_threads(n_envs) > 1:
+    would spin on the cores the envs step on, and acting batches are small (measured: physics 1.7x faster). Not
+    beside the updates (--overlap): torch's and MKL's settings are the process's, theirs too."""
+    threads, alone = torch.get_num_threads(), physics_threads(n_envs) > 1 and not BESIDE["updating"]
+    if alone:
         torch.set_num_threads(1)
     try:
         yield
     finally:
-        torch.set_num_threads(threads)
+        if alone:
+            torch.set_num_threads(threads)
 
 
 def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray, n_envs: int = 1):
@@ -295,6 +304,77 @@ def physics_threads(n_envs: int) -> int:
 @functools.cache
 def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
+
+
+# ------------------------------------------------------------------------------------------------
+# Both cores at work (--overlap): a cycle's SAC updates in a thread beside its collection
+# ------------------------------------------------------------------------------------------------
+BESIDE = dict(updating=False)  # while an overlapped cycle's updates run (physics_first then leaves torch's threads)
+
+
+def overlap_of(run) -> tuple[bool, str]:
+    """Whether a cycle's SAC updates run beside its collection (--overlap), and the run's first line's words: not
+    for a goal sampler whose cycle reads the networks (its Sampler.reads_the_nets), or may be given up (a person's).
+    With it, torch runs one thread (a core for the updates, one for the collection) unless --threads says."""
+    sampler, why = run.sampler, "--no-overlap"
+    if run.args.overlap and (sampler.reads_the_nets or sampler.gives_up_cycles):
+        why = "its cycle reads the networks" if sampler.reads_the_nets else "a person's cycles may be given up"
+    overlap = run.args.overlap and why == "--no-overlap"
+    if overlap and not run.args.threads:
+        torch.set_num_threads(1)
+    return overlap, "updates beside collecting (--overlap)" if overlap else f"updates after collecting ({why})"
+
+
+def overlapped_cycle(run, script):
+    """script.one_cycle's steps, the SAC updates in a thread beside the collection (--overlap; SPEC §12). While
+    the workers collect cycle c (script.run_cycle), acting with the weights as the cycle began (acting_copy),
+    cycle c's updates (Learner.train) run on the replay and normalizer as cycle c - 1 left them; then, the
+    updates done, the cycle's segments are merged and learnt from, as in one_cycle. The two share no write:
+    the batches come from each worker's stream for them (Worker.batch_rng; collection draws from w.rng), acting
+    reads the copy, both read the normalizer and the replay, which change after. So a run is the same whatever
+    the machine's load; between cycles nothing runs: a checkpoint holds it all, --resume continues exactly.
+    MuJoCo's steps and torch's kernels release the GIL; the two loops' Python shares it (docs/speed.md)."""
+    learner, tally, t = run.learner, run.tally, time.perf_counter()
+    agent, acting, threads = learner.agent, acting_copy(learner.agent), torch.get_num_threads()
+
+    def updates():  # in the thread: the cycle's updates, timed, with this run's torch threads (a thread keeps its own)
+        start, _ = time.perf_counter(), torch.set_num_threads(threads)
+        return learner.train([w.batch_rng for w in run.workers], run.sampler.after_update), time.perf_counter() - start
+
+    BESIDE["updating"], agent.act = True, acting.act  # the collection acts with the copy (the updates never act)
+    pending = updates_thread().submit(updates)
+    try:
+        per_worker = script.run_cycle(run)
+    finally:  # on any error too: nothing goes on beside what comes next
+        del agent.act
+        losses, tally_update = pending.result()  # an error in the thread is raised here
+        BESIDE["updating"] = False
+    run.sampler.after_cycle()  # its merges are collectives (under torchrun): after the thread's
+    learner.learn_from(per_worker)
+    tally["wins"] += sum(s.success for ws in per_worker for s in ws)
+    tally["tries"] += sum(len(ws) for ws in per_worker)
+    tally["collect"] += time.perf_counter() - t
+    tally["update"] += tally_update
+    tally["losses"].update(losses)
+    run.cycle += 1
+
+
+def acting_copy(agent):
+    """A shallow copy of the SAC `agent` whose act() reads the actor's and critic's weights as they are now, in
+    nets of its own (made once, refilled at each call), while the updates go on changing the agent's."""
+    if "acting_copy" not in agent.__dict__:
+        nets = copy.deepcopy(agent.actor), copy.deepcopy(agent.critic)
+        agent.acting_copy = copy.copy(agent)
+        agent.acting_copy.acting_actor, agent.acting_copy.acting_critic = map(weight_view, nets)
+        agent.acting_copy.nets = nets
+    for net, live in zip(agent.acting_copy.nets, (agent.actor, agent.critic), strict=True):
+        net.load_state_dict(live.state_dict())
+    return agent.acting_copy
+
+
+@functools.cache
+def updates_thread() -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="updates")
 
 
 # ------------------------------------------------------------------------------------------------

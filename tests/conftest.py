@@ -38,6 +38,16 @@ def pytest_configure_node(node):
     node.workerinput["loadgroup"] = node.config.option.dist == "loadgroup"
 
 
+@pytest.fixture(autouse=True)
+def torch_threads():
+    """torch's thread count as each test found it: a run in the test's process sets its own (--threads, --overlap)."""
+    import torch  # noqa: PLC0415 (after the environment above is set)
+
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture
 def gl():
     """MuJoCo, with a working OpenGL backend. Rendering must work in CI (CI=true); elsewhere a machine

@@ -53,7 +53,9 @@ def main(out: Path, num_envs: int):
     grads = {k: {n: p.grad.clone() for n, p in getattr(sac, k).named_parameters()} for k in nets}
     first_cycle, first_normalizer, goals, logged = [], None, [], []
     for cycle in range(args.n_cycles):
-        learner.learn_from(gh.run_cycle(run))
+        per_worker = gh.run_cycle(run)
+        run.sampler.after_cycle()  # as one_cycle: the workers' internalized pairs merged
+        learner.learn_from(per_worker)
         goals.append([[gh.og.to_mask(s.g) for s in w.segments] for w in run.workers])  # the picks among them
         if cycle == 0:  # each worker's segments: goal, start and final configs, success; the statistics
             first_cycle = [[(gh.og.to_mask(s.g), s.start, s.final, s.success) for s in w.segments]

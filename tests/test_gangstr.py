@@ -1093,7 +1093,7 @@ def test_the_first_line_prints_the_rates_adam_was_given_and_why_by_the_rule(monk
     (tmp_path / "agent.pt").write_bytes(b"")  # --init-from's file: only its hash is read here (config.json)
     line = first_line(monkeypatch, capsys, tmp_path, *[a.format(file=tmp_path / "agent.pt") for a in argv],
                       processes=processes)  # fmt: skip
-    assert line.endswith(says), line
+    assert f"{says} | " in line, line  # then whether the updates run beside collecting (tests/test_overlap.py)
 
 
 def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path, capsys):
@@ -1102,7 +1102,7 @@ def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_sta
         return capsys.readouterr().out.splitlines()
 
     first = lines(*RESUME, "--n-epochs", "1", runs_dir=tmp_path / "a")[0]
-    assert first.endswith("rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)")
+    assert "rates 0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers) | " in first
     (run,) = (tmp_path / "a").iterdir()
     assert json.loads((run / "config.json").read_text())["adam_rates"] == pytest.approx([3e-4, 3e-4], rel=1e-12)
     state = torch.load(run / "checkpoint.pt", weights_only=True)  # as a run started before x0.3 saved it
@@ -1115,7 +1115,7 @@ def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_sta
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert [state[o]["param_groups"][0]["lr"] for o in ("actor_opt", "critic_opt")] == [1e-3, 1e-3]
     first = lines(*RESUME, "--n-epochs", "1", "--lr-actor", "5e-4", "--lr-critic", "6e-4", runs_dir=tmp_path / "b")[0]
-    assert first.endswith("| rates 0.0005 / 0.0006 (given)")
+    assert "| rates 0.0005 / 0.0006 (given) | " in first
     (run,) = (tmp_path / "b").iterdir()
     out = lines("--resume", str(run / "checkpoint.pt"), "--n-epochs", "2", runs_dir=tmp_path / "b")
     assert "| rates 0.0005 / 0.0006 (the run's own)" in out[1]

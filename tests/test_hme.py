@@ -365,6 +365,7 @@ def test_pairs_stored_by_two_workers_merge_into_one_set_drawn_uniformly(monkeypa
     monkeypatch.setattr(gh, "all_gather_rows", all_gather_rows)
     monkeypatch.setattr(plumbing, "check_budgets", lambda run: None)  # a cycle of no segment, on purpose
     gh.run_cycle(run)
+    run.sampler.after_cycle()
     # The same distinct pairs in the same order on every worker (so a seeded draw agrees): the old
     # ones, then the new ones in rank order.
     assert run.sampler.internalization_buffer == [a, b, c, d]

@@ -222,7 +222,9 @@ def test_no_signal_reads_a_class_table_renaming_the_evaluation_classes_changes_n
         torch.manual_seed(0)  # the same critic
         run, said = hme_run(learner_picks=signal, n_segments=6, segment_len=6, stable_steps=2, seed=4), []
         for _ in range(6):
-            run.learner.learn_from(gh.run_cycle(run))
+            per_worker = gh.run_cycle(run)
+            run.sampler.after_cycle()
+            run.learner.learn_from(per_worker)
             said += [og.to_mask(s.g) for s in run.workers[0].segments]
         return said, run
 

@@ -518,7 +518,9 @@ def test_a_checkpoint_from_before_the_fine_tuning_flags_resumes_at_its_own_rates
 def test_a_run_resumed_during_the_warmup_reproduces_the_uninterrupted_run(tmp_path):
     write_paper_file(tmp_path / "gangstr.pt", our_agent(3))
     # the first cycle (3 segments) waits for the replay; then 2 updates a cycle: 6 by epoch 2, of a warm-up of 8
-    start = ["--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--init-warmup", "8", "--init-learning-starts", "4"]
+    # (one after the other: with --overlap, the updates see the replay a cycle later, and wait a cycle more)
+    start = ["--init-from", str(tmp_path / "gangstr.pt"), *TINY, "--init-warmup", "8", "--init-learning-starts", "4",
+             "--no-overlap"]  # fmt: skip
     assert run_script(*start, "--n-epochs", "2", runs_dir=tmp_path / "a").returncode == 0
     out = run_script(*start, "--n-epochs", "1", runs_dir=tmp_path / "b")
     assert out.returncode == 0, out.stderr
@@ -574,7 +576,8 @@ def same_numbers(rows: list[dict], fixture: list[dict]) -> bool:
                                            ("vds_baseline.py", [])])  # fmt: skip
 def test_a_run_without_init_from_computes_what_it_did_before_the_fine_tuning_flags(tmp_path, script, flags):
     tiny = [*TINY[: TINY.index("--sp-ratio")], *flags, "--n-blocks", "3", "--n-epochs", "1", "--seed", "3",
-            "--paper-rates"]  # fmt: skip  # the fixtures' rates: made before x0.3 below 24 workers (SPEC §12)
+            "--paper-rates", "--no-overlap"]  # fmt: skip  # the fixtures' rates (made before x0.3 below 24 workers,
+    # SPEC §12) and order (before --overlap): the flag off computes what the code did before it
     out = inprocess.run_script(script, *tiny, runs_dir=tmp_path)
     assert out.returncode == 0, out.stderr
     (run,) = tmp_path.iterdir()

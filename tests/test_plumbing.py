@@ -52,7 +52,7 @@ def test_every_script_imports_plumbing_and_keeps_its_main_short(script):
 def fake_run(cycle: int, seconds: float, steps: int, epoch: int, last_eval: float | None):
     """What cycle_progress reads of a run: 10 cycles of 10-step segments per epoch, 3 epochs."""
     args = types.SimpleNamespace(n_cycles=10, n_epochs=3, segment_len=10, n_updates=30, freeze_normalizer=False)
-    tally = dict(collect=seconds / 4, update=3 * seconds / 4, env_steps_at_start=1000, losses=dict(critic_loss=0.25))
+    tally = dict(wall=seconds, env_steps_at_start=1000, losses=dict(critic_loss=0.25))
     rows = [] if last_eval is None else [dict(time_eval=last_eval)]
     learner = types.SimpleNamespace(segments=(1000 + steps) // 10, waiting=None)
     return types.SimpleNamespace(args=args, tally=tally, cycle=cycle, epoch=epoch, rows=rows, learner=learner)
