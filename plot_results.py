@@ -8,7 +8,7 @@ Each --condition names a condition and lists its run folders (one per seed). Fig
 - global_sr: global success rate over episodes, mean +- std over seeds; a star marks the points where
   a condition differs from --reference (Welch's t-test, p < --alpha);
 - sr_per_class: success rate per evaluation class, one panel per class; sr_per_class_by_hour: the same over
-  each run's own hours (its epochs' collecting, updating and evaluating seconds; --hours H cuts each run there);
+  each run's own hours (its epochs' wall seconds, time_epoch, or before it their parts; --hours H cuts each run there);
 - sp_per_class: per class, the social partner's proposals (frontier and beyond), the agent's distinct
   encounters, and its success rate over time (first seed-mean of each condition that has proposals);
 - stepping_stones: the stepping stones left, per condition with a social partner;
@@ -79,9 +79,12 @@ def first_epochs(run: dict, n: int) -> dict:
 
 
 def own_hours(run: dict) -> np.ndarray:
-    """Hours of the run's own time at each epoch's end: its collecting, updating and evaluating seconds summed
-    (start-up, checkpoints and time stopped left out), the time axis of runs compared at equal compute."""
-    return np.cumsum(run["time_collect"] + run["time_update"] + run["time_eval"]) / 3600
+    """Hours of the run's own time at each epoch's end: its wall seconds (time_epoch; with --overlap, collecting
+    and updating at once), or in a row written before that column its collecting, updating and evaluating seconds
+    summed (start-up, checkpoints and time stopped left out), the time axis of runs compared at equal compute."""
+    parts = run["time_collect"] + run["time_update"] + run["time_eval"]
+    wall = run.get("time_epoch", np.full_like(parts, np.nan))
+    return np.cumsum(np.where(np.isnan(wall), parts, wall)) / 3600
 
 
 def first_hours(run: dict, hours: float, folder: str) -> dict:

@@ -165,6 +165,14 @@ def test_hours_cut_each_run_at_its_own_time_and_tables_give_the_first_hour_at_ha
     assert pr.loss_text(np.full(5, np.nan)) == "no update" and pr.loss_text(np.array([np.nan, 2.0, 4.0])) == "3"
 
 
+def test_own_hours_are_the_epochs_wall_time_and_before_time_epoch_the_sum_of_the_parts():
+    parts = dict(time_collect=np.array([100.0, 100.0, 100.0]), time_update=np.array([200.0, 200.0, 200.0]),
+                 time_eval=np.array([60.0, 60.0, 60.0]))  # fmt: skip
+    np.testing.assert_allclose(pr.own_hours(parts), np.array([360.0, 720.0, 1080.0]) / 3600)
+    resumed = parts | dict(time_epoch=np.array([np.nan, 250.0, 250.0]))  # its first row older than the column
+    np.testing.assert_allclose(pr.own_hours(resumed), np.array([360.0, 610.0, 860.0]) / 3600)
+
+
 def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
     three = fake_run(tmp_path / "three", 0, 0.5, False)
     five = fake_run(tmp_path / "five", 1, 0.5, False)
