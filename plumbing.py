@@ -429,7 +429,6 @@ def save_state(run) -> dict:
         graph=learner.graph.state_dict(),
         encountered=torch.tensor(sorted(learner.encountered), dtype=torch.int64),
         **run.sampler.state_dict(),
-        # each worker's random streams, of this process: its own, its env's, its update batches' (--overlap)
         **{key: [json.dumps(rng(w).bit_generator.state) for w in run.workers] for key, rng in WORKER_RNGS.items()},
     )  # fmt: skip
     if run.args.save_buffer:
@@ -1114,11 +1113,12 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
         self.overlap, how = speed.overlap_of(run)  # with it, unless --threads, torch's threads: one
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {agent.device} | "
                  f"rates {rates_text(lrs, whys)} | {how}", final=True)  # fmt: skip
-        self.sampler = run.sampler
+        self.run, self.sampler = run, run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 
     def __exit__(self, *exc):
         self.sampler.close()
+        speed.close_updates(self.run)  # --overlap's process
         if self.logger is not None:
             self.logger.close()
         for sig, handler in self.stopper.before.items():  # main()'s caller (Python's) gets its own back

@@ -25,12 +25,18 @@ import concurrent.futures
 import contextlib
 import copy
 import ctypes
+import dataclasses
 import functools
+import importlib.util
+import io
+import json
 import math
+import multiprocessing
 import os
+import signal
 import sys
-import threading
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -102,9 +108,7 @@ def fused_adam_refuses(opt: torch.optim.Optimizer) -> str:
     return ""
 
 
-# Within fast_nets: its arguments and thread; the script's own nets, kept after it (another thread may still be
-# in a fast net it looked up before the block ended: it runs the own ones)
-FAST = dict(dtype=None, kernels=False, thread=None, own=None)
+FAST = dict(dtype=None, kernels=False, own=None)  # within fast_nets: its arguments, and the script's own nets
 
 
 @contextlib.contextmanager
@@ -113,23 +117,20 @@ def fast_nets(script, dtype: torch.dtype, kernels: bool = True):
     node_sum, edge_max and MLP.forward are this file's, the same math. On the CPU, if `kernels`, the kernels
     below (not while torch.compile traces: --compile fuses the plain ops itself); elsewhere the large nets'
     products in `dtype` (--precision; sums, heads, losses and targets stay fp32). The script looks these names
-    up at call time: outside this block (acting, evaluation, a goal sampler's own use), and in any other thread
-    while it is open (the collection beside the updates, speed.overlapped_cycle), its own nets run."""
+    up at call time: outside this block (acting, evaluation, a goal sampler's own use), its own nets run."""
     own, before = (script.node_sum, script.edge_max, script.MLP.forward), dict(FAST)
-    FAST.update(dtype=dtype, kernels=kernels, thread=threading.get_ident(), own=own)
+    FAST.update(dtype=dtype, kernels=kernels, own=own)
     script.node_sum, script.edge_max, script.MLP.forward = fast_node_sum, fast_edge_max, fast_forward
     try:
         yield
     finally:
         script.node_sum, script.edge_max, script.MLP.forward = own
-        FAST.update(before, own=own)
+        FAST.update(before)
 
 
 def kernels_here(x: torch.Tensor) -> bool:
-    """Whether the CPU kernels compute the net that x goes through: within fast_nets with kernels, in its thread,
-    on the CPU."""
-    mine = FAST["thread"] == threading.get_ident()
-    return FAST["kernels"] and mine and x.is_cpu and not torch.compiler.is_compiling()
+    """Whether the CPU kernels compute the net that x goes through: within fast_nets with kernels, on the CPU."""
+    return FAST["kernels"] and x.is_cpu and not torch.compiler.is_compiling()
 
 
 def fast_node_sum(net, glob: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
@@ -150,10 +151,10 @@ def fast_edge_max(net, edges: torch.Tensor, n: int) -> torch.Tensor:
 def fast_forward(net, x: torch.Tensor) -> torch.Tensor:
     """The script's MLP.forward: a head (no output ReLU) by Head on the CPU; a large net (run on every edge or
     node) Linear -> ReLU -> Linear (-> ReLU) with its products in the update's dtype (in fp32, the same ops as
-    the script's); any other net, or any net in another thread, the script's own."""
+    the script's); any other net, the script's own."""
     if kernels_here(x) and not net.out_relu:
         return Head.apply(x, *net.params())
-    if not net.large or FAST["thread"] != threading.get_ident():
+    if not net.large:
         return FAST["own"][2](net, x)
     x, w1, b1, w2, b2 = (t.to(FAST["dtype"]) for t in (x, *net.params()))
     x = F.linear(F.relu(F.linear(x, w1, b1)), w2, b2)
@@ -265,16 +266,14 @@ def to_device(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, 
 @contextlib.contextmanager
 def physics_first(n_envs: int):
     """Within it, torch runs one thread while this process's n_envs envs step in several: torch's idle threads
-    would spin on the cores the envs step on, and acting batches are small (measured: physics 1.7x faster). Not
-    beside the updates (--overlap): torch's and MKL's settings are the process's, theirs too."""
-    threads, alone = torch.get_num_threads(), physics_threads(n_envs) > 1 and not BESIDE["updating"]
-    if alone:
+    would spin on the cores the envs step on, and acting batches are small (measured: physics 1.7x faster)."""
+    threads = torch.get_num_threads()
+    if physics_threads(n_envs) > 1:
         torch.set_num_threads(1)
     try:
         yield
     finally:
-        if alone:
-            torch.set_num_threads(threads)
+        torch.set_num_threads(threads)
 
 
 def step_envs(envs: list, actions: np.ndarray, obs_out: np.ndarray, ag_out: np.ndarray, n_envs: int = 1):
@@ -307,74 +306,194 @@ def physics_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
 
 
 # ------------------------------------------------------------------------------------------------
-# Both cores at work (--overlap): a cycle's SAC updates in a thread beside its collection
+# Both cores at work (--overlap): a cycle's SAC updates in a process of their own, beside its collection
 # ------------------------------------------------------------------------------------------------
-BESIDE = dict(updating=False)  # while an overlapped cycle's updates run (physics_first then leaves torch's threads)
-
-
 def overlap_of(run) -> tuple[bool, str]:
     """Whether a cycle's SAC updates run beside its collection (--overlap), and the run's first line's words: not
-    for a goal sampler whose cycle reads the networks (its Sampler.reads_the_nets), or may be given up (a person's).
-    With it, torch runs one thread (a core for the updates, one for the collection) unless --threads says."""
-    sampler, why = run.sampler, "--no-overlap"
-    if run.args.overlap and (sampler.reads_the_nets or sampler.gives_up_cycles):
-        why = "its cycle reads the networks" if sampler.reads_the_nets else "a person's cycles may be given up"
-    overlap = run.args.overlap and why == "--no-overlap"
-    if overlap and not run.args.threads:
+    under torchrun (its processes take the cores) or --cuda (the GPU is this process's), nor for a goal sampler
+    with an after_update of its own (the updates' process has no sampler: VDS's heads learn from each update) or
+    that may give a cycle up (a person partner). With it, torch runs one thread in each process unless --threads."""
+    sampler, args, script = run.sampler, run.args, sys.modules[type(run).__module__]
+    hooked = type(sampler).after_update is not script.Sampler.after_update
+    why = ("torchrun: its processes take the cores" if int(os.environ.get("WORLD_SIZE", "1")) > 1
+           else "--cuda: the GPU is this process's" if args.cuda
+           else "its goal sampler learns from each update" if hooked
+           else "a person's cycles may be given up" if sampler.gives_up_cycles else "")  # fmt: skip
+    if not (args.overlap and not why):
+        return False, "updates after collecting" + (f" (not --overlap: {why})" if args.overlap else "")
+    if not args.threads:
         torch.set_num_threads(1)
-    return overlap, "updates beside collecting (--overlap)" if overlap else f"updates after collecting ({why})"
+    return True, "updates beside collecting, in a process of their own (--overlap)"
 
 
 def overlapped_cycle(run, script):
-    """script.one_cycle's steps, the SAC updates in a thread beside the collection (--overlap; SPEC §12). While
-    the workers collect cycle c (script.run_cycle), acting with the weights as the cycle began (acting_copy),
-    cycle c's updates (Learner.train) run on the replay and normalizer as cycle c - 1 left them; then, the
-    updates done, the cycle's segments are merged and learnt from, as in one_cycle. The two share no write:
-    the batches come from each worker's stream for them (Worker.batch_rng; collection draws from w.rng), acting
-    reads the copy, both read the normalizer and the replay, which change after. So a run is the same whatever
-    the machine's load; between cycles nothing runs: a checkpoint holds it all, --resume continues exactly.
-    MuJoCo's steps and torch's kernels release the GIL; the two loops' Python shares it (docs/speed.md)."""
+    """script.one_cycle's steps, the SAC updates beside the collection (--overlap; SPEC §12). While this process's
+    workers collect cycle c (script.run_cycle), acting with the agent as the cycle began, cycle c's updates run in
+    the updates' process (Updates) on its copy of the learner: the replay and normalizer as cycle c - 1 left them,
+    each worker's batches from its stream for them (Worker.batch_rng). Then the agent here takes the updated
+    networks, optimizers and streams, and the cycle's segments are merged and learnt from, as in one_cycle; the
+    next cycle's request brings them to the copy. Between cycles the agent here holds everything: a checkpoint
+    is what it is without the overlap, --resume continues exactly, and a run is the same whatever the load."""
     learner, tally, t = run.learner, run.tally, time.perf_counter()
-    agent, acting, threads = learner.agent, acting_copy(learner.agent), torch.get_num_threads()
-
-    def updates():  # in the thread: the cycle's updates, timed, with this run's torch threads (a thread keeps its own)
-        start, _ = time.perf_counter(), torch.set_num_threads(threads)
-        return learner.train([w.batch_rng for w in run.workers], run.sampler.after_update), time.perf_counter() - start
-
-    BESIDE["updating"], agent.act = True, acting.act  # the collection acts with the copy (the updates never act)
-    pending = updates_thread().submit(updates)
+    if "updates" not in run.__dict__:
+        run.updates = Updates(run, script)
+    run.updates.request()
     try:
         per_worker = script.run_cycle(run)
-    finally:  # on any error too: nothing goes on beside what comes next
-        del agent.act
-        losses, tally_update = pending.result()  # an error in the thread is raised here
-        BESIDE["updating"] = False
-    run.sampler.after_cycle()  # its merges are collectives (under torchrun): after the thread's
+    finally:  # on an error too: nothing goes on beside what comes next
+        waited = time.perf_counter()
+        losses, tally_update = run.updates.answer()
+        waited = time.perf_counter() - waited
+    run.sampler.after_cycle()
     learner.learn_from(per_worker)
     tally["wins"] += sum(s.success for ws in per_worker for s in ws)
     tally["tries"] += sum(len(ws) for ws in per_worker)
-    tally["collect"] += time.perf_counter() - t
+    tally["collect"] += time.perf_counter() - t - waited  # this process's work, not its wait for the updates
     tally["update"] += tally_update
     tally["losses"].update(losses)
+    run.updates.learnt(per_worker)
     run.cycle += 1
 
 
-def acting_copy(agent):
-    """A shallow copy of the SAC `agent` whose act() reads the actor's and critic's weights as they are now, in
-    nets of its own (made once, refilled at each call), while the updates go on changing the agent's."""
-    if "acting_copy" not in agent.__dict__:
-        nets = copy.deepcopy(agent.actor), copy.deepcopy(agent.critic)
-        agent.acting_copy = copy.copy(agent)
-        agent.acting_copy.acting_actor, agent.acting_copy.acting_critic = map(weight_view, nets)
-        agent.acting_copy.nets = nets
-    for net, live in zip(agent.acting_copy.nets, (agent.actor, agent.critic), strict=True):
-        net.load_state_dict(live.state_dict())
-    return agent.acting_copy
+def close_updates(run):
+    """The updates' process of `run`, if any, told to end, and waited for (at the run's end, however it ends)."""
+    if (updates := run.__dict__.pop("updates", None)) is not None:
+        updates.close()
 
 
-@functools.cache
-def updates_thread() -> concurrent.futures.ThreadPoolExecutor:
-    return concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="updates")
+class Updates:
+    """The SAC updates' own process (--overlap): the script's Learner, built from the run's Args in a spawned
+    interpreter (torch's threads are not forked), loaded with this process's state (networks, optimizers, update
+    count, the workers' batch streams, normalizer, replay). Each cycle, request() sends it the last cycle's
+    segments and the normalizer and starts its updates; answer() waits for them and loads what they changed into
+    this process's agent. Messages are torch.save's bytes, read with weights_only. Ctrl-C and SIGTERM are this
+    process's (it stops at a cycle boundary): the updates' process ignores them, and ends when this one closes
+    the pipe or dies."""
+
+    def __init__(self, run, script):
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, theirs = ctx.Pipe()
+        self.process = ctx.Process(target=updates_process, name="updates", daemon=True, args=(
+            theirs, script.__file__, dataclasses.asdict(run.args), torch.get_num_threads()))  # fmt: skip
+        self.process.start()
+        theirs.close()
+        self.run, self.new, buffer = run, None, run.learner.buffer
+        replay = {k: torch.from_numpy(getattr(buffer, k)[:, : buffer.size]) for k in REPLAY}
+        self.send(learned(run.learner.agent, [w.batch_rng for w in run.workers]) | dict(replay=replay, ptr=buffer.ptr))
+
+    def send(self, message: dict):
+        try:
+            self.conn.send_bytes(pack(message))
+        except OSError:
+            self.died()
+
+    def request(self):
+        """The cycle's updates begin there, once the copy has learnt the last cycle's segments."""
+        self.send(dict(new=self.new, normalizer=normalizer_state(self.run.learner.agent.normalizer)))
+        self.new = None
+
+    def answer(self) -> tuple[dict, float]:
+        """Waits for the cycle's updates; the agent here takes what they changed. Their logged means, seconds."""
+        try:
+            got = unpack(self.conn.recv_bytes())
+        except (EOFError, OSError):
+            self.died()
+        if "failed" in got:
+            sys.exit(f"error: the SAC updates failed in their process ({got['failed']}: its traceback above); the "
+                     "last checkpoint holds the run as it was")  # fmt: skip
+        load_learned(self.run.learner.agent, [w.batch_rng for w in self.run.workers], got)
+        self.run.learner.waiting = got["waiting"]
+        return got["losses"], got["seconds"]
+
+    def learnt(self, per_worker: list):
+        """The cycle's segments, as the replay here stored them (each worker's newest), for the next request."""
+        buffer, n = self.run.learner.buffer, len(per_worker[0])
+        index = (buffer.ptr - n + np.arange(n)) % buffer.obs.shape[1]
+        self.new = {k: torch.from_numpy(getattr(buffer, k)[:, index]) for k in REPLAY}
+
+    def died(self):
+        self.process.join(5)
+        run = self.run
+        sys.exit(
+            f"error: the SAC updates' process ended (exit code {self.process.exitcode}) in epoch {run.epoch}, "
+            f"cycle {run.cycle + 1} of {run.args.n_cycles}; the last checkpoint holds the run as it was"
+        )
+
+    def close(self):
+        self.conn.close()  # it reads the end of its messages, and ends
+        self.process.join(10)
+        if self.process.is_alive():
+            self.process.kill()
+
+
+STATE = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # what the updates change, with n_updates
+REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays, in store()'s order
+
+
+def learned(agent, rngs: list) -> dict:
+    """What a cycle's updates change: the agent's networks and optimizers, its update count, the batch streams."""
+    return dict(**{k: getattr(agent, k).state_dict() for k in STATE}, n_updates=agent.n_updates,
+                rngs=[json.dumps(rng.bit_generator.state) for rng in rngs])  # fmt: skip
+
+
+def load_learned(agent, rngs: list, state: dict):
+    for k in STATE:
+        getattr(agent, k).load_state_dict(state[k])
+    agent.n_updates = state["n_updates"]
+    for rng, saved in zip(rngs, state["rngs"], strict=True):
+        rng.bit_generator.state = json.loads(saved)
+
+
+def normalizer_state(normalizer) -> dict:
+    return dict(sum=torch.from_numpy(normalizer.sum), sumsq=torch.from_numpy(normalizer.sumsq), count=normalizer.count)
+
+
+def pack(message: dict) -> bytes:
+    data = io.BytesIO()
+    torch.save(message, data)
+    return data.getvalue()
+
+
+def unpack(data: bytes) -> dict:
+    return torch.load(io.BytesIO(data), weights_only=True)
+
+
+def updates_process(conn, path: str, args: dict, threads: int):
+    """The updates' process: the training script at `path`, its Learner built from `args`; loaded, then one cycle's
+    updates a request, until the other end closes the pipe. A failure is told in one line, its traceback shown."""
+    for sig in (signal.SIGINT, signal.SIGTERM):  # the collecting process's: it stops the run at a cycle boundary
+        signal.signal(sig, signal.SIG_IGN)
+    libc = ctypes.CDLL(None) if sys.platform == "linux" else None
+    if libc is not None:  # and if it dies (kill -9, a second Ctrl-C), this one with it: PR_SET_PDEATHSIG
+        libc.prctl(1, signal.SIGKILL)
+    torch.set_num_threads(threads)
+    spec = importlib.util.spec_from_file_location("overlapped_script", path)
+    script = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    learner = script.Learner(script.Args(**args), torch.device("cpu"))
+    agent, buffer, rngs = learner.agent, learner.buffer, [np.random.default_rng() for _ in range(learner.args.num_envs)]
+    try:
+        state = unpack(conn.recv_bytes())
+        load_learned(agent, rngs, state)
+        buffer.store(*(state["replay"][k].numpy() for k in REPLAY))
+        buffer.ptr = state["ptr"]
+        while True:
+            try:
+                asked = unpack(conn.recv_bytes())
+            except EOFError:
+                return
+            if asked["new"] is not None:
+                buffer.store(*(asked["new"][k].numpy() for k in REPLAY))
+            n, got = agent.normalizer, asked["normalizer"]  # as the collecting process holds it
+            n.sum[:], n.sumsq[:], n.count = 0.0, 0.0, 0
+            n.add(got["sum"].numpy(), got["sumsq"].numpy(), got["count"])
+            start = time.perf_counter()
+            losses = learner.train(rngs)
+            answer = dict(losses=losses, seconds=time.perf_counter() - start, waiting=learner.waiting)
+            conn.send_bytes(pack(learned(agent, rngs) | answer))
+    except Exception as e:  # noqa: BLE001 (any failure: told to the collecting process in one line, then shown)
+        traceback.print_exc()
+        conn.send_bytes(pack(dict(failed=f"{type(e).__name__}: {e}")))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -124,7 +124,7 @@ class Args:
     threads: int = 0
     """torch CPU threads (0: all cores; one with --overlap, and while several envs step in threads, see drive)"""
     overlap: bool = True
-    """a cycle's SAC updates in a thread beside its collection, on the replay as it was before (SPEC §12); or after"""
+    """a cycle's SAC updates beside its collection, in a process of their own, on the replay before it (SPEC §12)"""
     cuda: bool = False
     """train on the GPU if one is available"""
     compile: bool = False
@@ -884,7 +884,8 @@ class Sampler:
         segments a cycle: run_cycle checks it). Each w.env.reset() starts a goal: add 1 to goals.
       goal_outcome(w, goal, reached): an autotelic goal's outcome (an attempt the budget cut off has none).
       after_cycle(): after every worker's cycle: merge what workers share, in worker order (SPEC §11).
-      after_update(batch, target): after each SAC update; returns a dict of 0-d tensors to log (a cycle's mean).
+      after_update(batch, target): after each SAC update; returns a dict of 0-d tensors to log (a cycle's mean). A
+        sampler with its own runs without --overlap (the updates' process has no sampler: speed.overlap_of).
         batch (SAC.to_tensors): the update's tensors on its device, B = batch_size x num_envs rows (this
         process's workers, in order): obs, obs_next (B, 10 + 15n), normalized; ag, ag_next and g
         (B, og.config_dim(n)), +-1, g relabelled by HER; action (B, 4); reward (B,), 1 where ag_next reaches g
@@ -905,8 +906,6 @@ class Sampler:
         (as autotelic_goal's) is the uninterrupted run's.
       open(folder, stopping), close(): a training run's folder, for files of its own, and whether Ctrl-C or
         SIGTERM asked the run to stop (a sampler that waits stops waiting); then the run's end.
-      reads_the_nets: whether its cycle reads the networks beyond acting, or what after_update trains (--overlap runs
-        it beside the cycle, in the updates' thread): then the updates run after each cycle (as for gives_up_cycles).
       gives_up_cycles: whether its cycle may raise plumbing.CycleGivenUp (False here), before the cycle's segments
         are learnt from, when a stop request ends a wait (`stopping`): the run then gives the cycle up, its
         checkpoint the state saved before the cycle (one process only), and --resume runs it again.
@@ -923,7 +922,7 @@ class Sampler:
     This base is the plain autotelic sampler of paper Algorithm 1: every cycle autotelic (autotelic_cycle),
     goals uniform over the agent's nodes (autotelic_goal), outcomes counted (goal_outcome)."""
 
-    gives_up_cycles, reads_the_nets = False, False
+    gives_up_cycles = False
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         self.args, self.learner, self.workers = args, learner, workers
@@ -993,8 +992,6 @@ class GoalSampler(Sampler):
     up to vds_candidates of the agent's nodes are scored by how much an ensemble of extra Q heads
     (VDSEnsemble, which learns the critic's TD targets after each SAC update: after_update) disagrees
     about them, and one is drawn with probability softmax(disagreement / temperature)."""
-
-    reads_the_nets = True  # the critic's readout and the heads, which the updates train: no --overlap
 
     def __init__(self, args: Args, learner: Learner, workers: list[Worker]):
         super().__init__(args, learner, workers)

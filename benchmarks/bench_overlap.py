@@ -1,9 +1,10 @@
 """What --overlap buys a cycle (docs/speed.md): a learner of gangstr_hme.py with the main job's settings (SP-20%,
 one worker, the paper's cycle of 10 segments and 30 updates of 256), built in this process, its cycles timed one
 after the other (one_cycle, --no-overlap) with torch on 1 and on 2 threads, and with the updates beside the
-collection (speed.overlapped_cycle, --overlap, torch on 1 thread: a core each). Each condition's seconds a cycle
-(the median over --cycles cycles after --warmup ones), and the overlap's speed-up over each. Conditions run one
-after the other, in turn, --repeats times; medians, and each repeat's ratios (the machine's speed drifts).
+collection (speed.overlapped_cycle, --overlap: in a process of their own, torch on 1 thread in each, a core each).
+Each condition's seconds a cycle (the median over --cycles cycles after --warmup ones), and the overlap's speed-up
+over each. Conditions run one after the other, in turn, --repeats times; medians, and each repeat's ratios (the
+machine's speed drifts).
 
     python benchmarks/bench_overlap.py [--n-blocks 3 5] [--precision fp32 bf16] [--cycles 8] [--repeats 2]
 """
@@ -32,11 +33,14 @@ def cycle_seconds(n_blocks: int, precision: str, overlap: bool, threads: int, ar
     cfg = gh.Args(n_blocks=n_blocks, sp_ratio=0.2, seed=args.seed, precision=precision, threads=threads,
                   overlap=overlap)  # fmt: skip
     run, seconds = gh.Run(cfg, torch.device("cpu")), []
-    for cycle in range(args.warmup + args.cycles):
-        t = time.perf_counter()
-        speed.overlapped_cycle(run, gh) if overlap else gh.one_cycle(run)
-        if cycle >= args.warmup:
-            seconds.append(time.perf_counter() - t)
+    try:
+        for cycle in range(args.warmup + args.cycles):
+            t = time.perf_counter()
+            speed.overlapped_cycle(run, gh) if overlap else gh.one_cycle(run)
+            if cycle >= args.warmup:
+                seconds.append(time.perf_counter() - t)
+    finally:
+        speed.close_updates(run)
     return statistics.median(seconds)
 
 

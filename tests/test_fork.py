@@ -429,7 +429,7 @@ def contract_hooks(module) -> set[str]:
 def reached_by_the_run(module) -> set[str]:
     """What the script and plumbing.py reach a goal sampler by: its attributes (run.sampler.x), its class
     (GoalSampler(...)), the check beside it, the Args field plumbing reads; and the hooks the base calls."""
-    code = Path(module.__file__).read_text() + (ROOT / "plumbing.py").read_text() + (ROOT / "speed.py").read_text()
+    code = Path(module.__file__).read_text() + (ROOT / "plumbing.py").read_text()
     names = set(re.findall(r"\bsampler\.(\w+)", code))
     names |= {n for n in ("GoalSampler", "check_sampler_args") if re.search(rf"\b{n}\(", code)}
     names |= {n for n in ("RESUMABLE", "NEEDS", "SAME") if f'"{n}"' in code}  # the Args fields plumbing reads
