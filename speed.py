@@ -35,6 +35,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -371,12 +372,18 @@ class Updates:
     the pipe or dies."""
 
     def __init__(self, run, script):
-        ctx = multiprocessing.get_context("spawn")
-        self.conn, theirs = ctx.Pipe()
+        # a fork of a server that imported torch and this file once (spawned: torch's threads are not forked), or a
+        # spawned interpreter where there is none (Windows)
+        forks = "forkserver" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("forkserver" if forks else "spawn")
+        if forks:
+            ctx.set_forkserver_preload([__name__])
+        (self.conn, theirs), (alive, self.alive) = ctx.Pipe(), ctx.Pipe(duplex=False)
         self.process = ctx.Process(target=updates_process, name="updates", daemon=True, args=(
-            theirs, script.__file__, dataclasses.asdict(run.args), torch.get_num_threads()))  # fmt: skip
+            theirs, alive, script.__file__, dataclasses.asdict(run.args), torch.get_num_threads()))  # fmt: skip
         self.process.start()
         theirs.close()
+        alive.close()
         self.run, self.new, buffer = run, None, run.learner.buffer
         replay = {k: torch.from_numpy(getattr(buffer, k)[:, : buffer.size]) for k in REPLAY}
         self.send(learned(run.learner.agent, [w.batch_rng for w in run.workers]) | dict(replay=replay, ptr=buffer.ptr))
@@ -421,6 +428,7 @@ class Updates:
 
     def close(self):
         self.conn.close()  # it reads the end of its messages, and ends
+        self.alive.close()
         self.process.join(10)
         if self.process.is_alive():
             self.process.kill()
@@ -458,14 +466,20 @@ def unpack(data: bytes) -> dict:
     return torch.load(io.BytesIO(data), weights_only=True)
 
 
-def updates_process(conn, path: str, args: dict, threads: int):
+def orphaned(alive):
+    """Ends this process once the collecting one is gone (kill -9, a second Ctrl-C: its end of `alive` closes, and
+    it never writes there), even within an update that never ends."""
+    with contextlib.suppress(EOFError, OSError):
+        alive.recv()
+    os._exit(1)
+
+
+def updates_process(conn, alive, path: str, args: dict, threads: int):
     """The updates' process: the training script at `path`, its Learner built from `args`; loaded, then one cycle's
     updates a request, until the other end closes the pipe. A failure is told in one line, its traceback shown."""
     for sig in (signal.SIGINT, signal.SIGTERM):  # the collecting process's: it stops the run at a cycle boundary
         signal.signal(sig, signal.SIG_IGN)
-    libc = ctypes.CDLL(None) if sys.platform == "linux" else None
-    if libc is not None:  # and if it dies (kill -9, a second Ctrl-C), this one with it: PR_SET_PDEATHSIG
-        libc.prctl(1, signal.SIGKILL)
+    threading.Thread(target=orphaned, args=(alive,), daemon=True).start()
     torch.set_num_threads(threads)
     spec = importlib.util.spec_from_file_location("overlapped_script", path)
     script = sys.modules[spec.name] = importlib.util.module_from_spec(spec)

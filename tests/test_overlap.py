@@ -284,7 +284,7 @@ def test_updates_that_hang_leave_the_run_to_a_second_ctrl_c_and_their_process_en
     assert proc.returncode == 130 and "aborted by a second SIGINT: the last checkpoint is kept as it was" in said
     the_last_checkpoint_holds_epoch_0(tmp_path)
     deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:  # the updates' process ended with the run (PR_SET_PDEATHSIG)
+    while time.monotonic() < deadline:  # the updates' process ended with the run (speed.orphaned)
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
