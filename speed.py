@@ -14,9 +14,11 @@ computes the same losses faster (docs/speed.md has each trick's figure):
     CPU, glibc told to keep the update's freed memory (keep_freed_memory).
 Whatever --plain says, three that change no number: acting through views of the weights that do not
 require grad (weight_view), a batch sent to a GPU in one pinned copy (to_device), and the envs stepped in
-threads (step_envs, physics_first). And what the command line and the benchmarks ask of the machine:
-fast_bf16, cpu_line. It imports no training script and knows no goal
-sampler: scripts and plumbing.py -> this file -> fetch5_env, oracle_graph.
+threads (step_envs, physics_first). --overlap's process, which changes the order of a cycle, not its math: a
+cycle's SAC updates beside its collection (overlapped_cycle, Updates; SPEC §12). And what the command line and the
+benchmarks ask of the machine: fast_bf16, cpu_line. It imports no training script (--overlap's process loads the
+run's by its path) and knows a goal sampler by Sampler's hooks alone: scripts and plumbing.py -> this file ->
+fetch5_env, oracle_graph.
 """
 
 from __future__ import annotations
@@ -320,7 +322,7 @@ def overlap_of(run) -> tuple[bool, str]:
            else "--cuda: the GPU is this process's" if args.cuda
            else "its goal sampler learns from each update" if hooked
            else "a person's cycles may be given up" if sampler.gives_up_cycles else "")  # fmt: skip
-    if not (args.overlap and not why):
+    if not args.overlap or why:
         return False, "updates after collecting" + (f" (not --overlap: {why})" if args.overlap else "")
     if not args.threads:
         torch.set_num_threads(1)
@@ -363,8 +365,8 @@ def close_updates(run):
 
 
 class Updates:
-    """The SAC updates' own process (--overlap): the script's Learner, built from the run's Args in a spawned
-    interpreter (torch's threads are not forked), loaded with this process's state (networks, optimizers, update
+    """The SAC updates' own process (--overlap): the script's Learner, built from the run's Args in a fresh process
+    (torch's threads are not forked), loaded with this process's state (networks, optimizers, update
     count, the workers' batch streams, normalizer, replay). Each cycle, request() sends it the last cycle's
     segments and the normalizer and starts its updates; answer() waits for them and loads what they changed into
     this process's agent. Messages are torch.save's bytes, read with weights_only. Ctrl-C and SIGTERM are this
