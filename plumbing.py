@@ -376,7 +376,7 @@ def summed(counts: collections.Counter, keys: list[str]) -> dict[str, float]:
 ENV_VERSION = fetch5_env.ENV_VERSION  # a checkpoint names the environment it was trained in (and its script)
 CHECKPOINT_KEYS = ("args", "counters", "actor", "critic")
 NETWORKS = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # SAC's, as saved
-REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays
+REPLAY = speed.REPLAY  # ReplayBuffer's arrays (what --overlap's process is sent too)
 WORKER_RNGS = dict(rng=lambda w: w.rng, env_rng=lambda w: w.env.np_random, batch_rng=lambda w: w.batch_rng)
 # Args fields newer than some checkpoints, each with the value that computes what the run computed before it:
 # one started with --init-from before the fine-tuning defaults (SPEC §10) keeps its rates; before --overlap, its order.
