@@ -495,16 +495,31 @@ def tables(conditions: dict, reference: str | None = None) -> str:
 
 def hours_tables(labelled: list, names: list[str]) -> str:
     """Per run, the first hour of its own time (own_hours) at which each class's SR reaches 0.5 and 0.8; its
-    hours, epochs, segments and the critic's loss (mean of its last 5 epochs) at its end."""
+    hours, epochs (an hour), segments, the critic's loss (mean of its last 5 epochs) at its end, and its SR over its
+    hours (mean_sr_by_time), the close classes' and all classes': less noisy than a first hour, which one
+    evaluation of 24 goals a class decides."""
     out = ["\nFirst hour of each run's own time (collecting, updating, evaluating) at SR 0.5, then at 0.8:\n"]
     rows = [[cls, *(" / ".join(first_at(r[f"sr_{cls}"], level, own_hours(r)) for level in (0.5, 0.8))
                     for _, r in labelled)] for cls in names]  # fmt: skip
     out.append(md_table(["class", *(lab for lab, _ in labelled)], rows))
     out.append("\nAt each run's end:\n")
-    rows = [[lab, f"{own_hours(r)[-1]:.2f}", str(len(r["epoch"])), f"{int(r['segments'][-1]):,}",
-             loss_text(r["critic_loss"][-5:])] for lab, r in labelled]  # fmt: skip
-    out.append(md_table(["run", "own hours", "epochs", "segments", "critic loss (last 5 epochs)"], rows))
+    close = [c for c in names if c.startswith("C")]
+    rows = [[lab, f"{own_hours(r)[-1]:.2f}", str(len(r["epoch"])), f"{len(r['epoch']) / own_hours(r)[-1]:.1f}",
+             f"{int(r['segments'][-1]):,}", loss_text(r["critic_loss"][-5:]),
+             *(f"{mean_sr_by_time(r, classes):.3f}" for classes in (close, names))] for lab, r in labelled]  # fmt: skip
+    out.append(md_table(["run", "own hours", "epochs", "epochs an hour", "segments", "critic loss (last 5 epochs)",
+                         f"mean SR over its hours, {'-'.join((close[0], close[-1]))}", "mean SR, all classes"],
+                        rows))  # fmt: skip
     return "\n".join(out)
+
+
+def mean_sr_by_time(run: dict, classes: list[str]) -> float:
+    """The classes' mean SR averaged over the run's own time: each epoch's evaluation weighted by the epoch's
+    hours (own_hours), the area under its SR curve by the hour over its hours, so that runs of different epoch
+    lengths compare at equal time."""
+    seconds = np.diff(own_hours(run), prepend=0.0)
+    sr = np.mean([run[f"sr_{c}"] for c in classes], axis=0)
+    return float(np.sum(sr * seconds) / np.sum(seconds))
 
 
 def practice_tables(labelled: list, built: list[str]) -> str:

@@ -149,15 +149,20 @@ def test_hours_cut_each_run_at_its_own_time_and_tables_give_the_first_hour_at_ha
     # every class's SR is epoch / 12; an epoch takes 0.1 h of its run's own time in one run, 0.2 h in the other
     fast = fake_run(tmp_path / "fast", 0, 1.0, False, noise=0, seconds=(200, 100, 60))
     slow = fake_run(tmp_path / "slow", 1, 1.0, False, noise=0, seconds=(400, 200, 120))
+    rows = list(csv.DictReader((fast / "progress.csv").open()))
+    write_rows(fast, [r | dict(sr_S2=0, sr_S3=0, sr_P3=0) for r in rows])  # the fast run learns no construction
     argv = ["--condition", "F", str(fast), "--condition", "S", str(slow)]
     pr.main([*argv, "--out", str(tmp_path / "all")])
     table = (tmp_path / "all" / "tables.md").read_text()
     assert "| C1 | 0.70 h / 1.10 h | 1.40 h / 2.20 h |" in table  # SR 0.5 at epoch 6, 0.8 at epoch 10
-    assert "| F seed 0 | 1.20 | 12 | 6,000 | 9 |" in table  # its end: hours, epochs, segments, last 5 losses' mean
+    # its end: hours, epochs (10 an hour), segments, last 5 losses' mean, mean SR over its hours (of 0/12 ... 11/12)
+    assert "| F seed 0 | 1.20 | 12 | 10.0 | 6,000 | 9 | 0.458 | 0.229 |" in table  # half its classes at 0
+    assert "| S seed 1 | 2.40 | 12 | 5.0 | 6,000 | 9 | 0.458 | 0.458 |" in table
     assert "sr_per_class_by_hour" in figures_not_rendered
     pr.main([*argv, "--hours", "0.6", "--out", str(tmp_path / "cut")])
     table = (tmp_path / "cut" / "tables.md").read_text()
-    assert "| F seed 0 | 0.60 | 6 |" in table and "| S seed 1 | 0.60 | 3 |" in table
+    assert "| F seed 0 | 0.60 | 6 | 10.0 | 3,000 | 3 | 0.208 | 0.104 |" in table  # 0/12 ... 5/12
+    assert "| S seed 1 | 0.60 | 3 | 5.0 | 1,500 | 1 | 0.083 |" in table  # 0/12 ... 2/12: less learnt in its hours
     assert "| C1 | never (max 0.42) / never (max 0.42) | never (max 0.17) / never (max 0.17) |" in table
     with pytest.raises(SystemExit) as e:  # within the first epoch: nothing to compare, refused (not every epoch)
         pr.main([*argv, "--hours", "0.15", "--out", str(tmp_path / "none")])
@@ -171,6 +176,15 @@ def test_own_hours_are_the_epochs_wall_time_and_before_time_epoch_the_sum_of_the
     np.testing.assert_allclose(pr.own_hours(parts), np.array([360.0, 720.0, 1080.0]) / 3600)
     resumed = parts | dict(time_epoch=np.array([np.nan, 250.0, 250.0]))  # its first row older than the column
     np.testing.assert_allclose(pr.own_hours(resumed), np.array([360.0, 610.0, 860.0]) / 3600)
+
+
+def test_mean_sr_by_time_weights_each_evaluation_by_its_epochs_hours():
+    # a 300 s epoch at SR 0 then a 100 s epoch at 1 (C1; C2 at 1 then 0): a quarter, three quarters, a half of the time
+    run = dict(time_collect=np.zeros(2), time_update=np.zeros(2), time_eval=np.zeros(2),
+               time_epoch=np.array([300.0, 100.0]), sr_C1=np.array([0.0, 1.0]), sr_C2=np.array([1.0, 0.0]))  # fmt: skip
+    assert pr.mean_sr_by_time(run, ["C1"]) == pytest.approx(0.25)
+    assert pr.mean_sr_by_time(run, ["C2"]) == pytest.approx(0.75)
+    assert pr.mean_sr_by_time(run, ["C1", "C2"]) == pytest.approx(0.5)
 
 
 def test_runs_of_different_block_counts_are_refused(tmp_path, capsys):
