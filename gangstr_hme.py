@@ -167,8 +167,9 @@ class Args:
     """train on the GPU if one is available"""
     compile: bool = False
     """compile the SAC losses with torch.compile (start-up: about a minute on 2 CPU cores; docs/speed.md)"""
-    precision: str = "fp32"
-    """the update's large products: 'fp32' or 'bf16' (bf16 products; weights, losses, targets fp32: docs/speed.md)"""
+    precision: str = ""
+    """the update's large products: 'fp32' or 'bf16' (bf16 products; weights, losses, targets fp32: docs/speed.md);
+    '': bf16 on a CPU with bf16 matrix units (AMX, AVX512-BF16), else fp32 (SPEC §12)"""
     plain: bool = False
     """the update's speed tricks off: the plain nets (no CPU kernels), Adam unfused, glibc's memory default"""
     resume: str = ""

@@ -174,10 +174,10 @@ def check_args(a, check_sampler_args) -> str | None:
         return "--paper-rates does nothing with --init-from (its rates: --init-lr-scale x the paper's; 1 gives them)"
     if not og.MIN_BLOCKS <= a.n_blocks <= og.MAX_BLOCKS:
         return f"--n-blocks must be in [{og.MIN_BLOCKS}, {og.MAX_BLOCKS}], got {a.n_blocks}"
-    for name, (one, other) in dict(her_strategy=("final", "future"), plan_on=("agent", "oracle"),
-                                   precision=("fp32", "bf16")).items():  # fmt: skip
-        if getattr(a, name) not in (one, other):
-            return f"--{name.replace('_', '-')} must be {one!r} or {other!r}, got {getattr(a, name)!r}"
+    for name, allowed in dict(her_strategy=("final", "future"), plan_on=("agent", "oracle"),
+                              precision=("fp32", "bf16", "")).items():  # fmt: skip  # '': speed.precision_of's
+        if getattr(a, name) not in allowed:
+            return f"--{name.replace('_', '-')} must be {' or '.join(map(repr, allowed))}, got {getattr(a, name)!r}"
     if a.max_path_len < 2:
         return f"--max-path-len must be at least 2 (start and goal), got {a.max_path_len}"
     if a.stable_steps > a.segment_len:
@@ -196,9 +196,8 @@ def check_args(a, check_sampler_args) -> str | None:
         return f"--batch-size must be at most {MAX_BATCH} (the paper's is 256), got {a.batch_size}"
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*", a.exp_name):
         return f"--exp-name must be a plain name (letters, digits, _ . + = -), got {a.exp_name!r}"
-    if a.plain and (a.compile or a.precision != "fp32"):
-        trick = "--compile" if a.compile else f"--precision {a.precision}"
-        return f"--plain turns every speed trick off: not with {trick}"
+    if a.plain and (a.compile or a.precision == "bf16"):
+        return f"--plain turns every speed trick off: not with {'--compile' if a.compile else '--precision bf16'}"
     return check_device(a) or check_run_control(a) or check_sampler_args(a)
 
 
@@ -1083,6 +1082,7 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
     def __init__(self, run, state: dict | None, init: dict | None = None):
         args, agent = run.args, run.learner.agent
         lrs = [opt.defaults["lr"] for opt in (agent.actor_opt, agent.critic_opt)]  # what Adam was given (SPEC §12)
+        precision, why = speed.precision_of(args)  # SPEC §12: the default ('') is this machine's
         if state is not None:
             restore(run, state, args.resume, "--resume")
             progress(f"resumed {args.resume} at epoch {run.epoch}, cycle {run.cycle}", final=True)
@@ -1099,7 +1099,7 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
                     self.dir.mkdir(parents=True, exist_ok=True)
                 except OSError as e:
                     fail(f"--runs-dir {args.runs_dir!r}: cannot create {str(self.dir)!r}: {e}")
-                config = dict(dataclasses.asdict(args), workers=world() * args.num_envs, adam_rates=lrs)
+                config = dict(dataclasses.asdict(args), workers=run.n_workers, adam_rates=lrs, precision=precision)
                 if args.init_from:  # which file (the paper's agent is not in the repository: its hash names it)
                     with open(args.init_from, "rb") as f:
                         config["init_from_sha256"] = hashlib.file_digest(f, "sha256").hexdigest()
@@ -1112,7 +1112,7 @@ class RunFolder(contextlib.AbstractContextManager):  # `with`: itself
         whys = [why for _, why in adam_rates(args)] if state is None else ["the run's own"] * 2  # as it began
         self.overlap, how = speed.overlap_of(run)  # with it, unless --threads, torch's threads: one
         progress(f"run folder {self.dir} | {args.n_blocks} blocks | {run.n_workers} worker(s) on {agent.device} | "
-                 f"rates {rates_text(lrs, whys)} | {how}", final=True)  # fmt: skip
+                 f"rates {rates_text(lrs, whys)} | precision {precision} ({why}) | {how}", final=True)  # fmt: skip
         self.run, self.sampler = run, run.sampler
         self.sampler.open(self.dir, lambda: self.stopper.requested)  # its own files; whether to stop waiting
 

@@ -63,7 +63,7 @@ def fast_update(agent):
     says whether); Adam's fused step (fuse_adams), one pass per tensor (on the CPU, torch's default is a dozen small
     ops per tensor: 4x slower); on the CPU, glibc's kept memory."""
     script = sys.modules[type(agent).__module__]  # the training script whose SAC this is
-    dtype = dict(fp32=torch.float32, bf16=torch.bfloat16)[agent.args.precision]  # the large products'
+    dtype = dict(fp32=torch.float32, bf16=torch.bfloat16)[precision_of(agent.args)[0]]  # the large products'
     kernels = agent.device.type == "cpu"
     agent.fast_nets = fast_nets_compute(agent, script, kernels)
     if agent.fast_nets:
@@ -663,6 +663,17 @@ def fast_bf16(cuda: bool) -> bool:
     caps = torch.cpu.get_capabilities()
     has_bf16 = any(caps.get(name) for name in ("amx_bf16", "avx512_bf16", "bf16", "sve_bf16"))
     return torch.backends.mkldnn.is_available() and has_bf16
+
+
+def precision_of(args) -> tuple[str, str]:
+    """The precision of the update's large products, and why: --precision as given; else (its default, '') bf16 on
+    a CPU with bf16 matrix units, where it learnt more per hour than fp32 (SPEC §12, docs/results.md), fp32 with
+    --plain (no speed trick), with --cuda (not measured there) and on a CPU without them."""
+    if args.precision:
+        return args.precision, "given"
+    why = ("--plain" if args.plain else "--cuda: bf16 not measured there" if args.cuda
+           else "" if fast_bf16(cuda=False) else "no bf16 matrix units on this CPU")  # fmt: skip
+    return ("fp32", why) if why else ("bf16", "this CPU's bf16 matrix units")
 
 
 def cpu_line() -> str:

@@ -20,7 +20,7 @@ import plumbing  # noqa: E402
 
 TINY = dict(n_blocks=3, n_cycles=3, n_segments=4, n_updates=2, batch_size=16, segment_len=10, stable_steps=3,
             eval_goals_per_class=2, threads=1, sp_ratio=0.5, buffer_size=4000, seed=3, ask_after=1,
-            learner_picks="zpd")  # fmt: skip
+            learner_picks="zpd", precision="fp32")  # fmt: skip  # fp32: the update checked against the plain nets
 
 
 def fixed_batch(seed: int, n: int = 16) -> dict:

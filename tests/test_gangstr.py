@@ -289,7 +289,7 @@ def test_actor_loss_moves_the_actor_only_and_the_message_net_learns_from_the_cri
     agents = []
     for _ in range(2):  # the same networks twice: one updated, one to take each loss's gradient alone
         torch.manual_seed(0)
-        agents.append(gh.SAC(gh.Args(n_blocks=3), 55, torch.device("cpu")))
+        agents.append(gh.SAC(gh.Args(n_blocks=3, precision="fp32"), 55, torch.device("cpu")))  # as the plain nets
         agents[-1].normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
     agent, alone = agents
     actor_before = [p.clone() for p in agent.actor.parameters()]
@@ -332,7 +332,7 @@ def test_a_compiled_update_computes_the_eager_updates_losses_and_gradients():
     got = {}
     for compiled in (False, True):
         torch.manual_seed(0)
-        agent = gh.SAC(gh.Args(n_blocks=3, compile=compiled), 55, torch.device("cpu"))
+        agent = gh.SAC(gh.Args(n_blocks=3, compile=compiled, precision="fp32"), 55, torch.device("cpu"))
         agent.normalizer.add(np.zeros(55), np.ones(55) * 4, 4)
         info = agent.update(filled_buffer().sample(32, [np.random.default_rng(0)], 0.8, "final"))
         info = {k: float(v) for k, v in info.items()}  # 0-d tensors, read by Learner.train once a cycle
@@ -1094,6 +1094,27 @@ def test_the_first_line_prints_the_rates_adam_was_given_and_why_by_the_rule(monk
     line = first_line(monkeypatch, capsys, tmp_path, *[a.format(file=tmp_path / "agent.pt") for a in argv],
                       processes=processes)  # fmt: skip
     assert f"{says} | " in line, line  # then whether the updates run beside collecting (tests/test_overlap.py)
+
+
+@pytest.mark.parametrize(
+    "argv, fast, says",
+    [
+        ([], True, "bf16 (this CPU's bf16 matrix units)"),
+        ([], False, "fp32 (no bf16 matrix units on this CPU)"),
+        (["--plain"], True, "fp32 (--plain)"),
+        (["--precision", "fp32"], True, "fp32 (given)"),
+        (["--precision", "bf16"], True, "bf16 (given)"),
+    ],
+)
+def test_the_first_line_and_config_name_the_precision_bf16_by_default_only_where_the_cpu_has_bf16_matrix_units(
+    monkeypatch, capsys, tmp_path, argv, fast, says
+):
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: fast)  # the machine's bf16 matrix units (SPEC §12)
+    assert f"| precision {says} | " in first_line(monkeypatch, capsys, tmp_path, *argv)
+    (run,) = (tmp_path / "runs").iterdir()
+    config = json.loads((run / "config.json").read_text())
+    assert config["precision"] == says.split()[0] and config["workers"] == 1  # what it computed in
+    assert speed.precision_of(gh.Args(cuda=True)) == ("fp32", "--cuda: bf16 not measured there")
 
 
 def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path, capsys):

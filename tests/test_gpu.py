@@ -46,7 +46,7 @@ def test_a_bf16_checkpoint_is_evaluated_in_fp32_where_bf16_is_slow(monkeypatch, 
     monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)  # a laptop: no AMX, no AVX512-BF16
     argv = ["--eval-only", "--checkpoint", str(tmp_path / "agent.pt"), "--eval-goals-per-class", "1", *flags]
     args, _, _ = plumbing.parse_command_line(gh.Args, gh.check_sampler_args, argv)
-    assert args.precision == "fp32" and args.n_blocks == 3
+    assert speed.precision_of(args)[0] == "fp32" and args.n_blocks == 3
     assert gh.main(argv) == 0
     (result,) = tmp_path.glob("eval_agent_*.json")
     assert set(json.loads(result.read_text())["sr"]) == {*run.classes, "global"}

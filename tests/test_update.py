@@ -164,8 +164,23 @@ def test_a_bf16_checkpoint_resumed_where_bf16_is_slow_is_refused_unless_fp32_is_
         plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume"}, state, "--resume")
     err = capsys.readouterr().err
     assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and "--precision bf16" in err
-    args = plumbing.args_from_checkpoint(gh.Args(resume="run.pt"), {"resume", "precision"}, state, "--resume")
+    given = gh.Args(resume="run.pt", precision="fp32")
+    args = plumbing.args_from_checkpoint(given, {"resume", "precision"}, state, "--resume")
     assert args.precision == "fp32" and args.n_blocks == 3
+
+
+def test_the_default_precision_computes_the_bf16_update_where_the_cpu_has_bf16_matrix_units_else_the_fp32_one(
+    monkeypatch,
+):
+    def losses(precision: str) -> tuple:  # one update's losses and gradients
+        (critic_loss, actor_loss, _, grads), _, _ = update_and_reference(precision)
+        return critic_loss, actor_loss, [g.tolist() for g in grads.values()]
+
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)
+    fp32 = losses("fp32")
+    assert losses("") == fp32
+    monkeypatch.setattr(speed, "fast_bf16", lambda cuda: True)
+    assert losses("bf16") == losses("") != fp32  # bf16's rounding: not fp32's numbers
 
 
 @pytest.mark.parametrize(
