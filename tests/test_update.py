@@ -176,9 +176,12 @@ def test_the_default_precision_computes_the_bf16_update_where_the_cpu_has_bf16_m
         (critic_loss, actor_loss, _, grads), _, _ = update_and_reference(precision)
         return critic_loss, actor_loss, [g.tolist() for g in grads.values()]
 
+    bf16_here = speed.fast_bf16(cuda=False)
     monkeypatch.setattr(speed, "fast_bf16", lambda cuda: False)
     fp32 = losses("fp32")
     assert losses("") == fp32
+    if not bf16_here:  # oneDNN may have no bf16 products here at all
+        pytest.skip("this CPU has no bf16 matrix instructions: the bf16 half is not computed here")
     monkeypatch.setattr(speed, "fast_bf16", lambda cuda: True)
     assert losses("bf16") == losses("") != fp32  # bf16's rounding: not fp32's numbers
 
