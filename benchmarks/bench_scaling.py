@@ -1,12 +1,15 @@
-"""Throughput of several workers (SPEC §11): collected env steps per second of whole training cycles
-(collection, graph updates and SAC updates; no evaluation), medians over repeats; then the seconds of
-one cycle of the paper's 24-worker configuration in one process, and where they go.
+"""Throughput of several workers (SPEC §11): collected env steps and updated samples per wall second of
+whole training cycles (collection, graph updates and SAC updates; no evaluation), medians over repeats;
+then the seconds of one cycle of the paper's 24-worker configuration in one process, and where they go.
 
 Each repeat of the first part is a fresh run of gangstr_hme.py for one epoch of --n-cycles cycles with
 the paper's settings otherwise (5 blocks, 10 segments and 30 updates of batch 256 per cycle and
-worker), read from its progress.csv. Conditions, interleaved so that drifts in machine load hit each:
-one process with one worker, one process with two (--num-envs 2), and two processes of one worker
-(`torchrun --nproc-per-node 2 ... --threads 1`).
+worker), read from its progress.csv: the epoch's wall seconds less its evaluation's (which include the
+first cycle's wait for the updates' process to start, with --overlap). Conditions, interleaved so that
+drifts in machine load hit each: one process with one worker, its updates beside its collection
+(--overlap, the default) or after it on torch's threads (--no-overlap); one process with two workers
+(--num-envs 2); two processes of one worker (`torchrun --nproc-per-node 2 ... --threads 1`). Updated
+samples count each worker's: torchrun's summed update is 2 x 256 of them.
 
 The second part builds a 24-worker learner in this process (--num-envs 24) and times --cycles-24
 cycles after a first one (which fills the replays), split into acting (the batched forward passes),
@@ -35,7 +38,8 @@ import plumbing  # noqa: E402
 import speed  # noqa: E402
 
 
-def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
+def per_second(launcher: list[str], flags: list[str], workers: int, args) -> tuple[float, float]:
+    """Env steps and updated samples per wall second of one run's cycles."""
     with tempfile.TemporaryDirectory() as runs:
         cmd = [*launcher, "gangstr_hme.py", "--n-blocks", str(args.n_blocks), "--n-epochs", "1",
                "--n-cycles", str(args.n_cycles), "--eval-goals-per-class", "1", "--no-save-buffer",
@@ -44,7 +48,8 @@ def steps_per_second(launcher: list[str], flags: list[str], args) -> float:
         (progress,) = Path(runs).glob("*/progress.csv")
         with progress.open() as f:
             row = next(csv.DictReader(f))  # collection and updates only, not the evaluation
-            return float(row["env_steps"]) / (float(row["time_collect"]) + float(row["time_update"]))
+        seconds = float(row["time_epoch"]) - float(row["time_eval"])
+        return float(row["env_steps"]) / seconds, workers * args.n_cycles * 30 * 256 / seconds
 
 
 def timed(seconds: dict, key: str, fn):
@@ -101,23 +106,26 @@ def main():
     args = parser.parse_args()
     print(speed.cpu_line())
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]  # = torchrun
-    conditions = {
-        "1 process, 1 worker": ([sys.executable], ["--num-envs", "1"]),
-        "1 process, 2 workers (--num-envs 2)": ([sys.executable], ["--num-envs", "2"]),
-        "2 processes x 1 worker (torchrun)": (torchrun, ["--threads", "1"]),
+    conditions = {  # name: launcher, flags, workers
+        "1 process, 1 worker (--overlap)": ([sys.executable], ["--num-envs", "1"], 1),
+        "1 process, 1 worker (--no-overlap)": ([sys.executable], ["--num-envs", "1", "--no-overlap"], 1),
+        "1 process, 2 workers (--num-envs 2)": ([sys.executable], ["--num-envs", "2"], 2),
+        "2 processes x 1 worker (torchrun)": (torchrun, ["--threads", "1"], 2),
     }
     if not args.skip_scaling:
         results = {}
         for _ in range(args.repeats):
-            for name, (launcher, flags) in conditions.items():
-                results.setdefault(name, []).append(steps_per_second(launcher, flags, args))
-        med = {name: statistics.median(v) for name, v in results.items()}
-        print(f"{args.n_blocks} blocks, {args.n_cycles} cycles per run, median of {args.repeats} runs")
-        for name, v in med.items():
-            print(f"  {name:38s} {v:7.0f} env steps/s   (runs: {', '.join(f'{x:.0f}' for x in results[name])})")
-        lockstep, torchrun_2 = med["1 process, 2 workers (--num-envs 2)"], med["2 processes x 1 worker (torchrun)"]
-        print(f"  ratio --num-envs 2 / torchrun 2 x 1:   {lockstep / torchrun_2:.2f}x")
-        print(f"  ratio --num-envs 2 / 1 worker:         {lockstep / med['1 process, 1 worker']:.2f}x")
+            for name, (launcher, flags, workers) in conditions.items():
+                results.setdefault(name, []).append(per_second(launcher, flags, workers, args))
+        print(f"{args.n_blocks} blocks, {args.precision}, {args.n_cycles} cycles a run, median of {args.repeats} runs")
+        med = {}
+        for name, v in results.items():
+            med[name] = [statistics.median(x[i] for x in v) for i in (0, 1)]
+            runs = ", ".join(f"{x[0]:.0f}" for x in v)
+            print(f"  {name:38s} {med[name][0]:5.0f} env steps/s (runs: {runs}), {med[name][1]:6.0f} samples updated/s")
+        one = med["1 process, 1 worker (--overlap)"]
+        for name, (steps, samples) in med.items():
+            print(f"  {name:38s} {steps / one[0]:.2f}x the env steps, {samples / one[1]:.2f}x the samples of --overlap")
     if args.skip_24:
         return
     total, split = cycle_profile(args)
