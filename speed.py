@@ -402,8 +402,11 @@ class Updates:
         self.new = None
 
     def answer(self) -> tuple[dict, float]:
-        """Waits for the cycle's updates; the agent here takes what they changed. Their logged means, seconds."""
+        """Waits for the cycle's updates (HUNG at most); the agent here takes what they changed. Their logged means,
+        seconds."""
         try:
+            if not self.conn.poll(HUNG):
+                self.died(f"answered nothing for {HUNG:g} s (hung) and was stopped")
             got = unpack(self.conn.recv_bytes())
         except (EOFError, OSError):
             self.died()
@@ -420,12 +423,12 @@ class Updates:
         index = (buffer.ptr - n + np.arange(n)) % buffer.obs.shape[1]
         self.new = {k: torch.from_numpy(getattr(buffer, k)[:, index]) for k in REPLAY}
 
-    def died(self):
-        self.process.join(5)
-        run = self.run
+    def died(self, how: str = ""):
+        self.process.join(0 if how else 5)  # a hung one is stopped as the run ends (close)
+        run, how = self.run, how or f"ended (exit code {self.process.exitcode})"
         sys.exit(
-            f"error: the SAC updates' process ended (exit code {self.process.exitcode}) in epoch {run.epoch}, "
-            f"cycle {run.cycle + 1} of {run.args.n_cycles}; the last checkpoint holds the run as it was"
+            f"error: the SAC updates' process {how} in epoch {run.epoch}, cycle {run.cycle + 1} of "
+            f"{run.args.n_cycles}; the last checkpoint holds the run as it was"
         )
 
     def close(self):
@@ -438,6 +441,7 @@ class Updates:
 
 STATE = ("actor", "critic", "critic_target", "actor_opt", "critic_opt")  # what the updates change, with n_updates
 REPLAY = ("obs", "ag", "g", "actions")  # ReplayBuffer's arrays, in store()'s order
+HUNG = 600.0  # seconds without an answer that end a run: a cycle's updates take seconds (24 workers: 14 s)
 
 
 def learned(agent, rngs: list) -> dict:

@@ -1119,6 +1119,24 @@ def test_the_first_line_and_config_name_the_precision_bf16_by_default_only_where
     assert speed.precision_of(gh.Args(cuda=True)) == ("fp32", "--cuda: bf16 not measured there")
 
 
+@pytest.mark.parametrize(
+    "workers, rates",
+    [(1, "0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)"),
+     (2, "0.0003 / 0.0003 (x0.3 of the paper's: below 24 workers)"),
+     (24, "0.001 / 0.001 (the paper's: 24 workers or more)")],
+)  # fmt: skip
+def test_the_first_line_names_one_machines_defaults_and_why_for_1_2_and_24_workers(monkeypatch, capsys, tmp_path,
+                                                                                   workers, rates):  # fmt: skip
+    """SPEC §12: the rates by the workers, bf16 on a CPU with bf16 matrix units, the updates beside collecting."""
+    if not speed.fast_bf16(cuda=False):
+        pytest.skip("this CPU has no bf16 matrix instructions: a bf16 agent is not built here")
+    line = first_line(monkeypatch, capsys, tmp_path, "--num-envs", str(workers))
+    assert line.endswith(
+        f"| 3 blocks | {workers} worker(s) on cpu | rates {rates} | precision bf16 (this CPU's bf16 "
+        "matrix units) | updates beside collecting, in a process of their own (--overlap)"
+    ), line
+
+
 def test_the_first_line_names_the_rates_and_a_resumed_run_keeps_the_rates_it_started_with(tmp_path, capsys):
     def lines(*argv, runs_dir) -> list[str]:  # a run in this process (no interpreter to start): what it printed
         assert gh.main([*argv, "--runs-dir", str(runs_dir)]) == 0

@@ -118,6 +118,38 @@ def test_two_overlapped_runs_are_one_run_and_resuming_one_reproduces_it(tmp_path
     assert no_overlap.returncode == 0 and untimed(rows(tmp_path / "d")) != a  # the updates' order differs
 
 
+def test_a_stop_while_an_overlapped_run_evaluates_resumes_into_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Ctrl-C in epoch 1's evaluation, after its first segment, ends it at once: the checkpoint holds the state from
+    before it (epoch 1, its cycles done, no row for it yet), and --resume evaluates again, then trains on, into the
+    uninterrupted run's rows."""
+    argv = [*TINY, "--n-epochs", "3"]
+    assert gh.main([*argv, "--runs-dir", str(tmp_path / "whole")]) == 0
+    run_segments, evaluate, stops = gh.run_segments, gh.evaluate, []
+
+    def stopping(*a):  # the evaluation's first segment run (its goal and path drawn), then Ctrl-C, handled at once
+        segments = run_segments(*a)
+        if not stops:
+            stops.append(1)
+            os.kill(os.getpid(), signal.SIGINT)
+        return segments
+
+    def evaluate_stopped_once(run, *a, **kw):
+        monkeypatch.setattr(gh, "run_segments", stopping if run.epoch == 1 else run_segments)
+        try:
+            return evaluate(run, *a, **kw)
+        finally:
+            monkeypatch.setattr(gh, "run_segments", run_segments)
+
+    monkeypatch.setattr(gh, "evaluate", evaluate_stopped_once)
+    assert gh.main([*argv, "--runs-dir", str(tmp_path / "stopped")]) == 130 and stops
+    ((run,),) = [list((tmp_path / "stopped").iterdir())]
+    counters = torch.load(run / "checkpoint.pt", weights_only=True)["counters"]
+    assert (counters["epoch"], counters["cycle"]) == (1, 2)
+    assert len(rows(tmp_path / "stopped")) == 1 and not multiprocessing.active_children()
+    assert gh.main(["--resume", str(run / "checkpoint.pt")]) == 0
+    assert untimed(rows(tmp_path / "stopped")) == untimed(rows(tmp_path / "whole"))
+
+
 NOT = "updates after collecting (not --overlap: "
 
 
@@ -131,8 +163,10 @@ NOT = "updates after collecting (not --overlap: "
         (vds, [], 1, NOT + "its goal sampler learns from each update)"),  # its heads learn from the TD targets
         (gh, ["--partner", "person", "--person-port", "0"], 1, NOT + "a person's cycles may be given up)"),
         (gh, [], 2, NOT + "torchrun: its processes take the cores)"),
+        (gh, ["--num-envs", "2"], 1, "updates beside collecting, in a process of their own (--overlap)"),
+        (gh, ["--num-envs", "24"], 1, "updates beside collecting, in a process of their own (--overlap)"),
     ],
-    ids=["default", "lp", "zpd", "no-overlap", "vds", "person", "torchrun"],
+    ids=["default", "lp", "zpd", "no-overlap", "vds", "person", "torchrun", "2-workers", "24-workers"],
 )
 def test_the_first_line_says_whether_the_updates_run_beside_collecting_and_why_not(
     tmp_path, capsys, monkeypatch, module, argv, world, says
@@ -153,6 +187,12 @@ def test_without_threads_given_the_overlap_gives_torch_one_thread_in_each_proces
     run.args = dataclasses.replace(run.args, overlap=False)
     torch.set_num_threads(2)
     assert not speed.overlap_of(run)[0] and torch.get_num_threads() == 2
+
+
+def test_the_overlap_is_off_with_cuda_the_gpu_being_this_processs(tmp_path):
+    run = tiny_run(gh, tmp_path=tmp_path)
+    run.args = dataclasses.replace(run.args, cuda=True)  # parse_args refuses --cuda without a GPU
+    assert speed.overlap_of(run) == (False, NOT + "--cuda: the GPU is this process's)")
 
 
 def test_a_run_begun_before_overlap_resumes_with_its_updates_after_collecting(tmp_path):
@@ -224,12 +264,13 @@ Learner.train = _train_that_fails
 """
 
 
-def run_fork(tmp_path, what: str) -> subprocess.Popen:
+def run_fork(tmp_path, what: str, also: str = "") -> subprocess.Popen:
+    """The fork, run on TINY's command line; `also`: top-level code of the fork's (in both processes)."""
     text = (ROOT / "gangstr_hme.py").read_text()
     main = 'if __name__ == "__main__":'
     fork = tmp_path / "fork.py"
     fork.write_text(
-        text.replace(main, FORK.replace("{what}", what) + "\n\n" + main).replace(
+        text.replace(main, FORK.replace("{what}", what) + also + "\n\n" + main).replace(
             "import math", "import math\nimport os"
         )
     )
@@ -268,6 +309,22 @@ def test_updates_that_fail_or_die_end_the_run_in_one_line_and_the_last_checkpoin
     the_last_checkpoint_holds_epoch_0(tmp_path)
 
 
+def test_updates_that_hang_end_the_run_in_one_line_once_they_answer_nothing_and_the_last_checkpoint_holds_it(
+    tmp_path,
+):
+    proc = run_fork(tmp_path, "time.sleep(3600)", also="\nspeed.HUNG = 2.0")
+    try:
+        out = proc.communicate(timeout=WAIT)[0]
+    finally:  # if it never ends, not left behind
+        proc.kill()
+    said = ("error: the SAC updates' process answered nothing for 2 s (hung) and was stopped in epoch 1, cycle 1 "
+            "of 2; the last checkpoint holds the run as it was")  # fmt: skip
+    assert proc.returncode == 1 and out.strip().splitlines()[-1] == said, out
+    assert "Traceback" not in out
+    the_last_checkpoint_holds_epoch_0(tmp_path)
+    ends_within_10_s(int(next(x for x in out.splitlines() if x.startswith("updates' process ")).split()[-1]))
+
+
 def test_updates_that_hang_leave_the_run_to_a_second_ctrl_c_and_their_process_ends_with_it(tmp_path):
     proc = run_fork(tmp_path, "time.sleep(3600)")
     for line in proc.stdout:
@@ -283,13 +340,17 @@ def test_updates_that_hang_leave_the_run_to_a_second_ctrl_c_and_their_process_en
     said = proc.communicate(timeout=WAIT)[0]
     assert proc.returncode == 130 and "aborted by a second SIGINT: the last checkpoint is kept as it was" in said
     the_last_checkpoint_holds_epoch_0(tmp_path)
+    ends_within_10_s(pid)  # with the run (speed.orphaned)
+
+
+def ends_within_10_s(pid: int):
+    """The updates' process `pid` is gone within 10 s (killed, if not, and the test failed)."""
     deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:  # the updates' process ended with the run (speed.orphaned)
+    while time.monotonic() < deadline:
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
-            break
+            return
         time.sleep(0.1)
-    else:
-        os.kill(pid, signal.SIGKILL)
-        pytest.fail(f"the updates' process {pid} outlived the run")
+    os.kill(pid, signal.SIGKILL)
+    pytest.fail(f"the updates' process {pid} outlived the run")
