@@ -336,7 +336,7 @@ def last_rows(path: str, column: str) -> np.ndarray:
 
 def test_the_numbers_the_readme_quotes_from_the_committed_runs_are_the_csvs():
     readme = " ".join((ROOT / "README.md").read_text().split())
-    main = "results/main_job/progress.csv"
+    main = "results/main_job/at_538064d/progress.csv"
     last10 = ", ".join(f"{c} {last_rows(main, f'sr_{c}')[-10:].mean():.2f}" for c in ("C1", "C2", "C3"))
     assert f"SR, last 10 epochs: {last10}" in readme
     stacks = max(last_rows(main, f"sr_{c}").max() for c in ("S2", "P3"))
