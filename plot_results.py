@@ -498,7 +498,7 @@ def hours_tables(labelled: list, names: list[str]) -> str:
     hours, epochs (an hour), segments, the critic's loss (mean of its last 5 epochs) at its end, and its SR over its
     hours (mean_sr_by_time), the close classes' and all classes': less noisy than a first hour, which one
     evaluation of 24 goals a class decides."""
-    out = ["\nFirst hour of each run's own time (collecting, updating, evaluating) at SR 0.5, then at 0.8:\n"]
+    out = ["\nFirst hour of each run's own time (its epochs' wall seconds) at SR 0.5, then at 0.8:\n"]
     rows = [[cls, *(" / ".join(first_at(r[f"sr_{cls}"], level, own_hours(r)) for level in (0.5, 0.8))
                     for _, r in labelled)] for cls in names]  # fmt: skip
     out.append(md_table(["class", *(lab for lab, _ in labelled)], rows))

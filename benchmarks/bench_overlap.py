@@ -1,7 +1,8 @@
 """What --overlap buys a cycle (docs/speed.md): a learner of gangstr_hme.py with the main job's settings (SP-20%,
 one worker, the paper's cycle of 10 segments and 30 updates of 256), built in this process, its cycles timed one
 after the other (one_cycle, --no-overlap) with torch on 1 and on 2 threads, and with the updates beside the
-collection (speed.overlapped_cycle, --overlap: in a process of their own, torch on 1 thread in each, a core each).
+collection (speed.overlapped_cycle, --overlap: in a process of their own, torch on 1 thread in each, a core each;
+and on 2 threads in each, --overlap --threads 2).
 Each condition's seconds a cycle (the median over --cycles cycles after --warmup ones), and the overlap's speed-up
 over each. Conditions run one after the other, in turn, --repeats times; medians, and each repeat's ratios (the
 machine's speed drifts).
@@ -23,7 +24,7 @@ import gangstr_hme as gh  # noqa: E402
 import speed  # noqa: E402
 
 MODES = {"one after the other, 1 thread": (False, 1), "one after the other, 2 threads": (False, 2),
-         "overlap, 1 thread": (True, 1)}  # fmt: skip
+         "overlap, 1 thread": (True, 1), "overlap, 2 threads": (True, 2)}  # fmt: skip
 
 
 def cycle_seconds(n_blocks: int, precision: str, overlap: bool, threads: int, args) -> float:
