@@ -16,6 +16,7 @@ from test_baselines import TINY
 import gangstr_hme as gh
 import lp_baseline as lp
 import oracle_graph as og
+import plot_results
 import plumbing
 import vds_baseline as vds
 
@@ -341,9 +342,10 @@ def test_the_numbers_the_readme_quotes_from_the_committed_runs_are_the_csvs():
     assert f"SR, last 10 epochs: {last10}" in readme
     stacks = max(last_rows(main, f"sr_{c}").max() for c in ("S2", "P3"))
     assert f"S2, P3 at most {stacks:.2f}" in readme
-    assert f"({last_rows(main, 'time_epoch').sum() / 3600:.2f} hours of its own)" in readme
+    hours = plot_results.own_hours(plot_results.read_run(ROOT / "results/main_job"))[-1]
+    assert f"({hours:.2f} hours of its own)" in readme
     runs = [f"results/update_3blocks/w1_x0.3_seed{s}/progress.csv" for s in (1, 2)]
-    own = [np.cumsum(sum(last_rows(r, f"time_{p}") for p in ("collect", "update", "eval"))) / 3600 for r in runs]
+    own = [plot_results.own_hours(plot_results.read_run((ROOT / r).parent)) for r in runs]
     s2 = sorted((int(np.argmax(last_rows(r, "sr_S2") >= 0.8)), h) for r, h in zip(runs, own, strict=True))
     s2 = [(epoch, f"{h[epoch]:.2f}") for epoch, h in s2]
     assert f"S2 at 0.8 after {s2[0][1]} and {s2[1][1]} own hours, by epochs {s2[0][0]} and {s2[1][0]}" in readme
